@@ -82,6 +82,8 @@ PAPER_TABLE2: dict[str, tuple[str, Stat, Stat]] = {
     "d": ("[28] (non-planar)", (0.64, 0.01), (1.89, 0.03)),
 }
 BASELINE_ROWS = {"sift": "d", "superpoint": "e"}
+BASELINE_METHODS = {"sift": "SIFT+RANSAC [20, 13]", "superpoint": "SuperPoint+RANSAC [12, 13]",
+                    "lightglue": "ALIKED+LightGlue+RANSAC (beyond the paper)"}
 # config keys that never tell runs apart (the seed is what a group averages over)
 IGNORED_KEYS = ("seed", "paths", "hydra", "ckpt_path", "resume", "test", "task_name", "logger", "callbacks",
                 "run", "ckpt", "device", "timing_queries", "default_data")
@@ -106,6 +108,7 @@ class Run:
     fig4: tuple[str, int] | None = None   # (fingerprint without N, N) of the row-(f) family
     reason: str | None = None        # a failed run's one-line reason
     mtime: float = 0.0
+    method: str | None = None        # an evaluation's method name for the methods table
 
     @property
     def paper_column(self) -> str | None:
@@ -238,6 +241,27 @@ def describe(cfg: DictConfig | None, kind: str, metrics: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
+def evaluation_method(kind: str, metrics: dict[str, Any], baseline: str) -> str:
+    """The method a ``matl.eval`` run evaluated, named as in Table 1 where it is a Table 1 row.
+
+    A checkpoint evaluation is named from the evaluated training run's own saved config (its row of
+    Table 1, else its distinguishing settings); ``+ refinement`` marks ``refine=true``.
+    """
+    if kind == "baseline":
+        name = BASELINE_METHODS.get(baseline, baseline)
+        return f"{name}, N={metrics.get('N')}" if metrics.get("N") not in (None, 4) else name
+    name = f"eval of {metrics.get('run') or '?'}"
+    cfg_file = Path(str(metrics.get("run"))) / ".hydra" / "config.yaml"
+    if metrics.get("run") and cfg_file.is_file():
+        cfg = OmegaConf.load(cfg_file)
+        hydra_file = cfg_file.parent / "hydra.yaml"
+        choices = dict(OmegaConf.select(OmegaConf.load(hydra_file), "hydra.runtime.choices", default={}) or {}) \
+            if hydra_file.is_file() else {}
+        row = classify_training(cfg, dataset_name(_select(cfg, "data"), choices.get("data")))[0]
+        name = f"({row}) {PAPER_TABLE1[row][0]}" if row else describe(cfg, "train", {})
+    return name + (" + refinement" if metrics.get("refine") else "")
+
+
 def load_run(path: Path) -> Run:
     """Read one run folder (see :class:`Run`)."""
     cfg_file, hydra_file = path / ".hydra" / "config.yaml", path / ".hydra" / "hydra.yaml"
@@ -274,6 +298,7 @@ def load_run(path: Path) -> Run:
                   reason=reason, mtime=mtime)
         if kind == "baseline" and N == 4:
             run.table1 = BASELINE_ROWS.get(str(baseline))
+        run.method = evaluation_method(kind, metrics, str(baseline))
         return run
     dataset = dataset_name(_select(cfg, "data"), choices.get("data"))
     setting = (choices.get("scale"), _select(cfg, "data.image_size"), _select(cfg, "trainer.max_epochs"),
@@ -482,6 +507,31 @@ def _fig4_md(series: dict[str, dict[int, Group]]) -> list[str]:
     return lines
 
 
+def _methods_md(groups: list[Group]) -> list[str]:
+    """Every evaluated method (``matl.eval`` of checkpoints and baselines), per dataset and query set."""
+    evals = [g for g in groups if g.runs and g.first.kind in ("eval", "baseline")]
+    if not evals:
+        return []
+    lines = ["## Methods on the same test queries (matl.eval)", "",
+             "One row per evaluated method; rows of one table share their test queries (dataset, split seed, "
+             "number of queries). n/a: the method has no pose. query_ms: median of single-query calls, "
+             "batch of 1, gallery of all anchors.", ""]
+    by_queries: dict[tuple[str, str, Any], list[Group]] = defaultdict(list)
+    for g in evals:
+        by_queries[(g.first.dataset, " ".join(map(str, g.seeds)), g.first.metrics.get("num_queries"))].append(g)
+    header = ["method", "rec_acc", "pose_err", "median corner_err_px", "pose_acc_5px", "query_ms", "seeds"]
+    for (dataset, seeds, queries), members in sorted(by_queries.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        lines += [f"{dataset}, split seed(s) {seeds}, {queries} queries:", "",
+                  "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        for g in sorted(members, key=lambda g: (g.first.method or g.first.label)):
+            cols = [g.first.method or g.first.label]
+            cols += [fmt_stat(g.stat(m)) for m in ("rec_acc", "pose_err", "corner_err_px_median", "pose_acc_5px",
+                                                    "query_ms")]
+            lines.append("| " + " | ".join([*cols, seeds]) + " |")
+        lines.append("")
+    return lines
+
+
 def csv_rows(groups: list[Group]) -> list[dict[str, Any]]:
     """``table.csv``: one row per group, numeric mean / std columns, its role in the paper's tables."""
     rows = []
@@ -589,6 +639,7 @@ def build_report(dirs: Sequence[Path], out: Path, fig5: Sequence[Path] | None = 
         files.append(path)
         lines += ["## Fig. 2: appearance loss against in-plane rotation", "", caption, "", "![Fig. 2](fig2.png)", ""]
 
+    lines += _methods_md(groups)
     header = ["config", "dataset", "kind", "runs", "seeds", *COLUMNS]
     lines += ["## All groups", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for g in groups:

@@ -129,6 +129,33 @@ def test_report_tables_from_fake_runs(sweep: Path) -> None:
     assert {p.name for p in rep.files} >= {"report.md", "table.csv", "fig4.png"}
 
 
+def test_methods_table_names_evaluations_by_the_evaluated_runs_config(tmp_path: Path) -> None:
+    """matl.eval of row (f) and row (b) checkpoints (one with refinement) and a SIFT evaluation, same queries."""
+    runs = {row: fake_run(tmp_path / "train" / row, [f"experiment=table1_{row}", "seed=0"], metrics_for(0.9, 0.5, 0),
+                          {"data": "synthetic_arc"}) for row in ("f", "b")}
+    evals = tmp_path / "evals"
+    queries = {"data": "synthetic_arc", "image_size": 100, "num_queries": 1000, "seed": 0}
+    for k, (row, refine, rec, pose) in enumerate([("f", False, 0.93, 0.6), ("f", True, 0.93, 0.4),
+                                                  ("b", False, 0.88, None)]):
+        metrics = {**metrics_for(rec, pose, 0), **queries, "run": str(runs[row]), "evaluated": "checkpoint",
+                   "refine": refine}
+        fake_run(evals / str(k), [f"run={runs[row]}", f"refine={str(refine).lower()}"], metrics,
+                 {"data": "synthetic_arc"}, config_name="eval")
+    fake_run(evals / "sift", ["experiment=table1_d"], {**metrics_for(0.97, 0.09, 0), **queries, "evaluated": "baseline",
+                                                        "baseline": "sift"}, {"baseline": "sift"}, config_name="eval")
+    report.build_report([evals], tmp_path / "report", auto_fig5=False)
+    text = (tmp_path / "report" / "report.md").read_text()
+    section = text.split("## Methods on the same test queries", 1)[1].split("\n## ", 1)[0]
+    assert "synthetic_arc, split seed(s) 0, 1000 queries:" in section
+    rows = {line.split(" | ")[0].lstrip("| "): [c.strip() for c in line.strip("|").split("|")]
+            for line in section.splitlines() if line.startswith("| (") or line.startswith("| SIFT")}
+    matl = "(f) Ours (multiple anchors, λ=10, N=4)"
+    assert set(rows) == {matl, f"{matl} + refinement", "(b) TL [29]", "SIFT+RANSAC [20, 13]"}
+    assert rows["(f) Ours (multiple anchors, λ=10, N=4) + refinement"][2] == "0.400 (1)"
+    assert rows["(b) TL [29]"][2:5] == ["n/a", "n/a", "n/a"] and rows["(b) TL [29]"][1] == "0.880 (1)"
+    assert rows["SIFT+RANSAC [20, 13]"][1] == "0.970 (1)" and rows["SIFT+RANSAC [20, 13]"][3] == "0.810 (1)"
+
+
 def test_rows_are_read_from_the_config_not_the_experiment_name(tmp_path: Path) -> None:
     """experiment=table1_f N=2 is a Fig. 4 point; a plain run with the same settings as row (g) is row (g)."""
     a = report.load_run(fake_run(tmp_path / "a", ["experiment=table1_f", "N=2"], metrics_for(0.5, 1.0, 0)))
