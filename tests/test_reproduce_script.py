@@ -68,3 +68,27 @@ def test_unknown_scale_is_refused(tmp_path: Path) -> None:
     done = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "DRY_RUN": "1", "SCALE": "paper"}, timeout=60)
     assert done.returncode == 2 and "GPUs" in done.stderr
+
+
+def test_compare_methods_evaluates_every_run_and_baseline_on_the_run_queries(tmp_path: Path) -> None:
+    runs = []
+    for name in ("n4", "n1", "tl"):
+        (tmp_path / name / ".hydra").mkdir(parents=True)
+        (tmp_path / name / ".hydra" / "config.yaml").write_text("task_name: train\n")
+        runs.append(str(tmp_path / name))
+    script = ROOT / "scripts" / "compare_methods.sh"
+    env = {k: v for k, v in os.environ.items() if k != "MATL_SUPERPOINT_WEIGHTS"}
+    done = subprocess.run(["bash", str(script), str(tmp_path / "out"), *runs], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60, env={**env, "DRY_RUN": "1", "BASELINES": "sift lightglue"})
+    assert done.returncode == 0, done.stderr
+    commands = [line[2:] for line in done.stdout.splitlines() if line.startswith("+ ")]
+    evals = [c for c in commands if c.startswith("python -m matl.eval")]
+    assert [c.split()[3] for c in evals[:3]] == [f"run={r}" for r in runs]
+    assert f"run={runs[0]} refine=true" in evals[3]
+    assert [c.split()[4] for c in evals[4:]] == ["baseline=sift", "baseline=lightglue"]
+    assert all(f"run={runs[0]}" in c for c in evals[4:])  # the baselines see RUN_N4's gallery and queries
+    assert len({c.rsplit("hydra.run.dir=", 1)[1] for c in evals}) == len(evals)  # one folder each
+    assert commands[-1].startswith("python -m matl.report")
+    bad = subprocess.run(["bash", str(script), str(tmp_path / "out"), str(tmp_path / "missing")], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60, env={**env, "DRY_RUN": "1"})
+    assert bad.returncode == 2 and "not a matl.train run folder" in bad.stderr
