@@ -38,5 +38,7 @@ class FeatureNet(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = self.pool(F.relu(self.conv1(images)))
         x = F.relu(self.conv2(x))
-        x = torch.amax(x, dim=(-2, -1))
+        # max (one index per channel) rather than amax: amax's backward, which splits the gradient
+        # among ties, cost ~15% of a training step on the CPU; the values are identical
+        x = x.flatten(2).max(dim=-1).values
         return F.normalize(x, dim=-1) if self.normalize else x
