@@ -37,8 +37,9 @@ def test_residuals_of_exact_poses_are_zero(diagnostics, tmp_path: Path, capsys: 
         writer.writeheader()
         for _ in range(20):
             H = np.eye(3) + rng.normal(scale=[[0.1, 0.1, 5], [0.1, 0.1, 5], [1e-3, 1e-3, 0]])
-            writer.writerow({"correct": "1", **{f"true_H_{k}": v for k, v in zip(keys, H.flatten())},
-                             **{f"est_H_{k}": v for k, v in zip(keys, H.flatten())}})
+            entries = dict(zip(keys, H.flatten(), strict=True))
+            writer.writerow({"correct": "1", **{f"true_H_{k}": v for k, v in entries.items()},
+                             **{f"est_H_{k}": v for k, v in entries.items()}})
     diagnostics.residuals(path)
     out = capsys.readouterr().out
     assert "20 correctly recognised queries" in out
