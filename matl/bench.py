@@ -36,6 +36,7 @@ import statistics
 import time
 import warnings
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +85,9 @@ def bench_options(cfg: DictConfig) -> DictConfig:
     for key in ("train_warmup", "query_warmup", "scaling_warmup", "render_objects"):
         if not isinstance(options[key], int) or options[key] < 0:
             raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 0")
+    threads = options.get("query_threads")
+    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
+        raise MatlError(f"bench.query_threads={threads} is invalid: use an integer >= 1, or null for the run's threads")
     anchors = list(options.scaling_anchors)
     if any(not isinstance(a, int) or a < 1 for a in anchors):
         raise MatlError(f"bench.scaling_anchors={anchors} is invalid: use a list of integers >= 1")
@@ -194,15 +198,19 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     query_ms: dict[str, float | None] = {}
     notes: dict[str, str] = {}
 
-    query_ms["matl"] = median_query_ms(_synced(recognizer, device), queries, warmup)
+    # every method at each thread count (bench.query_threads, or 1..the run's), then at its fastest
+    counts = thread_counts(options)
+    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+    threads = int(min(by_threads, key=lambda n: by_threads[n]))
+    query_ms["matl"] = by_threads[str(threads)]
     if options.refine:
         refined = RefinedRecognizer(recognizer, instantiate_node(cfg.refiner, "refiner"))
-        query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup)
+        query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
     if options.faiss and hasattr(recognizer, "use_search"):
         faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
         try:
             recognizer.use_search(instantiate_node(faiss_node, "search"))
-            query_ms["matl_faiss"] = median_query_ms(_synced(recognizer, device), queries, warmup)
+            query_ms["matl_faiss"] = median_query_ms(_synced(recognizer, device), queries, warmup, threads)
         except MatlError as error:  # faiss not installed: reported, not fatal
             query_ms["matl_faiss"] = None
             notes["matl_faiss"] = str(error)
@@ -214,7 +222,12 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     baseline = BaselineRecognizer(matcher, gallery)  # indexes the gallery once (not part of query_ms)
     index_s = time.perf_counter() - start
     cpu_queries = queries.cpu()
-    query_ms["sift_ransac"] = median_query_ms(baseline, cpu_queries, warmup)
+    sift_by_threads = {}
+    for n in counts:
+        with opencv_threads(n):  # torch's and OpenCV's threads alike
+            sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
+    sift_threads = int(min(sift_by_threads, key=lambda n: sift_by_threads[n]))
+    query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
 
     timing = {
         "queries": count, "warmup": warmup, "statistic": "median over single-query calls (batch of 1)",
@@ -224,10 +237,48 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
             cfg.baseline, resolve=True).items() if k != "_target_"},
         "baseline_index_seconds": index_s,
         "same_queries": "the first queries+warmup test queries of data (seed) for every method",
+        "timed_region": "one recognizer (or baseline) call per query, wall clock: networks, gallery search, pose",
+        "threads": "each method timed at every thread count in matl_ms_by_threads / sift_ms_by_threads (torch "
+                   "intra-op threads; OpenCV's too for SIFT); query_ms holds each method at its fastest",
+        "matl_threads": threads, "sift_threads": sift_threads,
+        "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
+        "matl_path": _query_path(recognizer, queries[:1]),
     }
     if notes:
         timing["notes"] = notes
     return {"query_ms": query_ms, "query_timing": timing}
+
+
+def thread_counts(options: DictConfig) -> list[int]:
+    """The thread counts single queries are timed at: ``[bench.query_threads]``, or 1..the run's (null)."""
+    value = options.get("query_threads")
+    return [int(value)] if value is not None else list(range(1, torch.get_num_threads() + 1))
+
+
+@contextmanager
+def opencv_threads(threads: int) -> Iterator[None]:
+    """``cv2.setNumThreads(threads)`` inside the block (the keypoint baselines run in OpenCV), restored after."""
+    try:
+        import cv2
+    except ImportError:
+        yield
+        return
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(int(threads))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
+
+
+def _query_path(recognizer: Any, query: torch.Tensor) -> str:
+    """Which code answered a single query: the compiled TorchScript graph or the eager networks."""
+    compiled = recognizer._compiled_path(query) if hasattr(recognizer, "_compiled_path") else None
+    if compiled is not None and compiled.failure is None and compiled._graph is not None:
+        return "compiled (TorchScript, frozen, optimize_for_inference)"
+    if compiled is not None and compiled.failure is not None:
+        return f"eager infer (compiled path failed: {compiled.failure})"
+    return "eager infer" if getattr(recognizer, "fast", False) else "eager forward"
 
 
 def _default_faiss_node() -> DictConfig:
@@ -239,17 +290,20 @@ def _default_faiss_node() -> DictConfig:
 
 
 # ------------------------------------------------------------------------------- gallery scaling
-def fixed_query_ms(model: Any, queries: torch.Tensor, warmup: int, device: torch.device) -> float:
+def fixed_query_ms(model: Any, recognizer: Any, queries: torch.Tensor, warmup: int, device: torch.device,
+                   threads: int | None = None) -> float:
     """Median milliseconds of ``c(s(query))`` for one query (the part of a query that does not
-    depend on the gallery size)."""
-    def embed_one(q: torch.Tensor) -> torch.Tensor:
-        warped = model.stn(q).warped if getattr(model, "stn", None) is not None else q
-        return model.feature_net(warped)
-    return median_query_ms(_synced(embed_one, device), queries, warmup)
+    depend on the gallery size), by the recognizer's own path (:meth:`Recognizer.embed_queries`)."""
+    embed_one = getattr(recognizer, "embed_queries", None)
+    if embed_one is None:  # a recognizer without an embedding path (the STN classifier): its networks
+        def embed_one(q: torch.Tensor) -> torch.Tensor:
+            warped = model.stn(q).warped if getattr(model, "stn", None) is not None else q
+            return model.feature_net(warped)
+    return median_query_ms(_synced(embed_one, device), queries, warmup, threads)
 
 
 def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: float,
-                    device: torch.device) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+                    device: torch.device, threads: int | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Search latency per gallery size, exact and (when installed) FAISS; see the module docstring."""
     from matl.models.options import search_name
     from matl.models.search import ExactSearch, FaissSearch, require_faiss
@@ -276,19 +330,19 @@ def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: 
         queries = torch.nn.functional.normalize(gallery[truth] + noise, dim=1)
         gallery, queries = gallery.to(device), queries.to(device)
         exact = ExactSearch(gallery)
-        search_ms = median_query_ms(_synced(lambda q, e=exact: e.search(q), device), queries, warmup)
+        search_ms = median_query_ms(_synced(lambda q, e=exact: e.search(q), device), queries, warmup, threads)
         exact_index = exact.search(queries)[0]
         row: dict[str, Any] = {"anchors": anchors, "query_ms": fixed_ms + search_ms, "search_ms": search_ms}
         if use_faiss:
             start = time.perf_counter()
             index = FaissSearch(gallery, **faiss_kwargs)
             row["faiss_build_s"] = time.perf_counter() - start
-            row["faiss_search_ms"] = median_query_ms(lambda q, i=index: i.search(q), queries, warmup)
+            row["faiss_search_ms"] = median_query_ms(lambda q, i=index: i.search(q), queries, warmup, threads)
             row["faiss_query_ms"] = fixed_ms + row["faiss_search_ms"]
             row["faiss_recall_at_1"] = float((index.search(queries)[0] == exact_index).float().mean())
         rows.append(row)
     info = {
-        "embedding_dim": dim, "queries": count, "warmup": warmup, "fixed_query_ms": fixed_ms,
+        "embedding_dim": dim, "queries": count, "warmup": warmup, "fixed_query_ms": fixed_ms, "threads": threads,
         "method": "query_ms = fixed_query_ms (STN + feature net of one real query, measured once) + search_ms "
                   "(median single-query search over random unit embeddings of the model's dimension; queries "
                   "are gallery entries plus noise of norm ~0.3)",
@@ -374,8 +428,11 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     queries = _query_images(datamodule, int(options.query_warmup) + int(options.queries), device)
     with torch.no_grad():
         model.eval()
-        fixed_ms = fixed_query_ms(model, queries, int(options.query_warmup), device)
-    results["gallery_scaling"], results["gallery_scaling_info"] = measure_scaling(cfg, options, model, fixed_ms, device)
+        threads = results["query_timing"]["matl_threads"]  # MATL's fastest thread count, as query_ms.matl
+        fixed_ms = fixed_query_ms(model, model.build_recognizer(datamodule.gallery), queries,
+                                  int(options.query_warmup), device, threads)
+    results["gallery_scaling"], results["gallery_scaling_info"] = measure_scaling(cfg, options, model, fixed_ms, device,
+                                                                                  threads)
 
     log.info("bench: rendering")
     results["render_images_per_s"], results["render"] = measure_render(cfg, options)
@@ -416,12 +473,14 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
     table.add_row("train_triplets_per_s", _fmt(results["train_triplets_per_s"], 1),
                   f"batch {train['batch_size']}, {train['image_size']} px, N={train['N']}")
     table.add_row("data_time_fraction", _fmt(results["data_time_fraction"], 3), "share of a step in materialize")
-    table.add_row("query_ms.matl", _fmt(q.get("matl")), f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}")
+    table.add_row("query_ms.matl", _fmt(q.get("matl")),
+                  f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}; {t['matl_threads']} thread(s)")
     if "matl_refine" in q:
         table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")), f"+{_fmt(results.get('refine_added_ms'))} ms")
     if "matl_faiss" in q:
         table.add_row("query_ms.matl_faiss", _fmt(q.get("matl_faiss")), t.get("notes", {}).get("matl_faiss", ""))
-    table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")), f"same {t['queries']} queries")
+    table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
+                  f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
     table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
     table.add_row("render_images_per_s", _fmt(results["render_images_per_s"], 1),
                   results["render"].get("skipped", f"{results['render'].get('objects')} objects, canonical"))

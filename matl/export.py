@@ -14,8 +14,9 @@ Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
 Formats: ``torchscript`` (default; ``torch.jit.load`` in Python or libtorch in C++, no matl or kornia
 needed) or ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``; dynamic batch).
 The query module re-expresses the STN's forward pass with plain torch ops (``grid_sample`` on a
-precomputed grid, the degeneracy guard as ``torch.where``) so that tracing records no Python branch;
-the export is checked against the eager model on every export (tolerance ``tolerance``).
+precomputed grid, the degeneracy guard as ``torch.where``; :class:`matl.models.inference.QueryGraph`)
+so that tracing records no Python branch; the export is checked against the eager model on every
+export (tolerance ``tolerance``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ from typing import Any
 
 import hydra
 import torch
-import torch.nn.functional as F
 from omegaconf import DictConfig
 from torch import nn
 
@@ -40,55 +40,16 @@ log = logging.getLogger(__name__)
 FORMATS = ("torchscript", "export")
 
 
-class QueryNet(nn.Module):
-    """``s()`` + ``c()`` of queries with no data-dependent Python control flow (traceable, exportable).
+def __getattr__(name: str) -> Any:
+    """``QueryNet``: :class:`matl.models.inference.QueryGraph`, the ``s()`` + ``c()`` graph that
+    ``Recognizer`` itself compiles for single queries, so the exported network and the in-process
+    fast path are one piece of code. Imported on first use (matl.models loads kornia; a bad option
+    of the CLI is reported before that)."""
+    if name == "QueryNet":
+        from matl.models.inference import QueryGraph
 
-    Mirrors :class:`matl.models.stn.SpatialTransformer` (``iterations`` regressions composed, the
-    degeneracy guard, the warp) and :class:`matl.models.feature.FeatureNet`.
-
-    ``forward(images (B, 3, S, S)) -> (embedding (B, D), query_H_anchor (B, 3, 3) pixel,
-    degenerate (B,) bool, warped (B, 3, S, S))``.
-    """
-
-    def __init__(self, stn: nn.Module, feature_net: nn.Module) -> None:
-        super().__init__()
-        self.regressor, self.feature_net = stn.regressor, feature_net
-        self.iterations, self.max_condition = int(stn.iterations), float(stn.max_condition)
-        size = int(stn.image_size)
-        self.size = size
-        lin = torch.linspace(-1.0, 1.0, size)
-        v, u = torch.meshgrid(lin, lin, indexing="ij")
-        self.register_buffer("grid", torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(size * size)], -1),
-                             persistent=False)                                      # (S*S, 3) normalised
-        # pixel -> normalised coordinates (align_corners=True) and back
-        norm = torch.tensor([[2.0 / (size - 1), 0.0, -1.0], [0.0, 2.0 / (size - 1), -1.0], [0.0, 0.0, 1.0]])
-        self.register_buffer("norm", norm, persistent=False)
-        self.register_buffer("denorm", torch.linalg.inv(norm), persistent=False)
-        self.register_buffer("eye", torch.eye(3), persistent=False)
-
-    def sample(self, images: torch.Tensor, H: torch.Tensor) -> torch.Tensor:
-        """``images(H @ x)`` over the normalised grid: the STN's warp (zeros outside)."""
-        points = self.grid @ H.transpose(1, 2)                                      # (B, S*S, 3)
-        z = points[..., 2:]
-        # kornia's convert_points_from_homogeneous: 1 / (z + eps) where |z| > eps, else 1
-        scale = torch.where(z.abs() > 1e-8, 1.0 / (z + 1e-8), torch.ones_like(z))
-        xy = (points[..., :2] * scale).reshape(-1, self.size, self.size, 2)
-        return F.grid_sample(images, xy, mode="bilinear", padding_mode="zeros", align_corners=True)
-
-    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        H = self.regressor(images)
-        for _ in range(self.iterations - 1):
-            H = H @ self.regressor(self.sample(images, H))
-        finite = torch.isfinite(H).all(dim=2).all(dim=1)
-        safe = torch.where(finite[:, None, None], H, self.eye)
-        sv = torch.linalg.svdvals(safe)
-        bad = ~finite | (sv[:, -1] * self.max_condition <= sv[:, 0])
-        H = torch.where(bad[:, None, None], self.eye, torch.nan_to_num(H))
-        warped = self.sample(images, H)
-        pixel = self.denorm @ H @ self.norm
-        h22 = pixel[:, 2:3, 2:3]
-        pixel = pixel / torch.where(h22.abs() > 1e-12, h22, torch.ones_like(h22))
-        return self.feature_net(warped), pixel, bad, warped
+        return QueryGraph
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _trace(module: nn.Module, example: torch.Tensor, fmt: str, path: Path) -> Any:
@@ -145,11 +106,13 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
     """
     if fmt not in FORMATS:
         raise MatlError(f"format={fmt} is invalid: use {' or '.join(FORMATS)}")
+    from matl.models.inference import QueryGraph
+
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
     suffix = ".pt" if fmt == "torchscript" else ".pt2"
     feature_net = feature_net.eval().cpu()
-    query_net: nn.Module = QueryNet(stn.eval().cpu(), feature_net) if stn is not None else feature_net
+    query_net: nn.Module = QueryGraph(stn.eval().cpu(), feature_net) if stn is not None else feature_net
     g = torch.Generator().manual_seed(seed)
     example = torch.rand(2, 3, image_size, image_size, generator=g)
 

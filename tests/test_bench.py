@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from matl.bench import REQUIRED_KEYS, run_bench
 from matl.utils.errors import MatlError
@@ -32,6 +33,12 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
     assert timing["queries"] == 3 and timing["weights"].startswith("untrained")
     assert math.isclose(saved["speedup_vs_sift"], q["sift_ransac"] / q["matl"], rel_tol=1e-9)
     assert math.isclose(saved["refine_added_ms"], q["matl_refine"] - q["matl"], rel_tol=1e-9)
+    # each method timed at every thread count up to the run's, reported at its fastest; MATL by its compiled graph
+    by, sift_by = timing["matl_ms_by_threads"], timing["sift_ms_by_threads"]
+    assert set(by) == set(sift_by) == {str(n) for n in range(1, torch.get_num_threads() + 1)}
+    assert q["matl"] == by[str(timing["matl_threads"])] == min(by.values())
+    assert q["sift_ransac"] == sift_by[str(timing["sift_threads"])] == min(sift_by.values())
+    assert timing["matl_path"].startswith("compiled")
 
     scaling = saved["gallery_scaling"]
     assert [row["anchors"] for row in scaling] == [600, 2000]
@@ -50,4 +57,7 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
 def test_bench_rejects_bad_sizes(tmp_path: Path) -> None:
     cfg = compose_config("bench", ["bench.queries=0"], tmp_path)
     with pytest.raises(MatlError, match=r"bench\.queries=0 is invalid"):
+        run_bench(cfg)
+    cfg = compose_config("bench", ["bench.query_threads=0"], tmp_path)
+    with pytest.raises(MatlError, match=r"bench\.query_threads=0 is invalid"):
         run_bench(cfg)

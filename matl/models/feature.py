@@ -42,3 +42,41 @@ class FeatureNet(nn.Module):
         # among ties, cost ~15% of a training step on the CPU; the values are identical
         x = x.flatten(2).max(dim=-1).values
         return F.normalize(x, dim=-1) if self.normalize else x
+
+    def forward_graph(self, images: torch.Tensor) -> torch.Tensor:
+        """``forward`` for a traced inference graph (:class:`matl.models.inference.QueryGraph`): the same
+        ops, except the global max pool as ``amax``, the same values without the index search (4x
+        faster on the dense map a frozen TorchScript graph hands it; no backward is needed there)."""
+        x = self.pool(F.relu(self.conv1(images)))
+        x = F.relu(self.conv2(x))
+        x = torch.amax(x, dim=(-2, -1))
+        return F.normalize(x, dim=-1) if self.normalize else x
+
+    @torch.no_grad()
+    def infer(self, images: torch.Tensor) -> torch.Tensor:
+        """``forward`` for inference (no gradient), the same embedding up to float rounding.
+
+        On the CPU: channels-last tensors (vectorised max pool) and oneDNN for both convolutions.
+        torch picks its slow im2col path for the second convolution of a single query (a 3x3 kernel on
+        an input under 20,480 values), twice as slow as oneDNN here; the global max pool reads the
+        channels-last map as ``(B, H*W, C)`` rows.
+        """
+        if images.device.type != "cpu" or images.dtype != torch.float32 or not torch.backends.mkldnn.is_available():
+            return self.forward(images)
+        x = images.contiguous(memory_format=torch.channels_last)
+        x = self.pool(conv_infer(self.conv1, x).relu_())
+        x = conv_infer(self.conv2, x).relu_()
+        x = x.permute(0, 2, 3, 1).flatten(1, 2).amax(dim=1)  # channels-last: a plain (B, H*W, C) view
+        return F.normalize(x, dim=-1) if self.normalize else x
+
+
+def conv_infer(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+    """``conv(x)`` through oneDNN whatever the batch size, for CPU float32 inference (no gradient).
+
+    ``F.conv2d`` sends a single small input with a 3x3 kernel (under 20,480 values) to torch's im2col
+    path, twice as slow as oneDNN on it here; a channels-last input gives a channels-last output.
+    Padding modes other than zeros, and string paddings, go through the module.
+    """
+    if conv.padding_mode != "zeros" or isinstance(conv.padding, str):
+        return conv(x)
+    return torch.mkldnn_convolution(x, conv.weight, conv.bias, conv.padding, conv.stride, conv.dilation, conv.groups)

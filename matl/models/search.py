@@ -47,6 +47,10 @@ def nearest(queries: torch.Tensor, gallery: torch.Tensor, chunk: int = 65536,
     best_d = torch.full((len(queries),), float("inf"), dtype=gallery.dtype, device=queries.device)
     best_i = torch.zeros(len(queries), dtype=torch.long, device=queries.device)
     q_sq = queries.pow(2).sum(-1, keepdim=True)
+    if 0 < len(gallery) <= chunk:  # one chunk (a single query's usual case): no running minimum to keep
+        d, i = torch.addmm(gallery_sq_norms[None], queries, gallery.T, alpha=-2.0).add_(q_sq).min(dim=1)
+        found = d < best_d  # as below: a NaN or infinite row keeps index 0 and distance inf
+        return torch.where(found, i, best_i), torch.where(found, d, best_d).clamp_min_(0).sqrt_()
     for start in range(0, len(gallery), chunk):
         g = gallery[start:start + chunk]
         # |q - g|^2 = |q|^2 + |g|^2 - 2 q.g as one fused addmm (|g|^2 cached: one pass over the gallery)

@@ -3,27 +3,49 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import torch
 
 
+@contextmanager
+def torch_threads(threads: int | None) -> Iterator[None]:
+    """``torch.set_num_threads(threads)`` inside the block, the previous count restored after (None: unchanged)."""
+    previous = torch.get_num_threads()
+    if threads is not None and threads != previous:
+        torch.set_num_threads(int(threads))
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+
+
 @torch.no_grad()
-def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, warmup: int = 5) -> float:
+def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, warmup: int = 5,
+                    threads: int | None = None) -> float:
     """Median milliseconds of ``predict`` on one query at a time (DESIGN §3 ``query_ms``: batch of 1).
+
+    The timed region is the ``predict`` call alone (wall clock), the same for every method.
 
     Args:
         predict: anything answering a ``(1, 3, H, W)`` batch (a recognizer with its gallery in memory,
             or a keypoint baseline adapter), so models and baselines are timed the same way.
-        queries: ``(Q, 3, H, W)``; the first ``warmup`` are run untimed (lazy initialisation, caches).
+        queries: ``(Q, 3, H, W)``; the first ``warmup`` are run untimed (lazy initialisation: the
+            recognizer compiles its query graph at its first call; caches).
+        threads: torch's intra-op threads during the measurement (None: leave them). One query is a
+            few small operations: on a small CPU shared with other work one thread is both faster and
+            far steadier than several, whose every operation waits for the slowest core (docs/speed.md).
     """
     times = []
-    for i in range(len(queries)):
-        start = time.perf_counter()
-        predict(queries[i:i + 1])
-        if i >= warmup:
-            times.append((time.perf_counter() - start) * 1000.0)
+    with torch_threads(threads):
+        for i in range(len(queries)):
+            start = time.perf_counter()
+            predict(queries[i:i + 1])
+            if i >= warmup:
+                times.append((time.perf_counter() - start) * 1000.0)
     return float(torch.tensor(times).median()) if times else float("nan")
 
 
