@@ -203,6 +203,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
     threads = int(min(by_threads, key=lambda n: by_threads[n]))
     query_ms["matl"] = by_threads[str(threads)]
+    int8 = measure_int8(cfg, datamodule, model, queries, warmup, counts, device)  # quantize=int8 only
+    query_ms.update(int8.pop("query_ms"))
     if options.refine:
         refined = RefinedRecognizer(recognizer, instantiate_node(cfg.refiner, "refiner"))
         query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
@@ -243,10 +245,33 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "matl_threads": threads, "sift_threads": sift_threads,
         "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
         "matl_path": _query_path(recognizer, queries[:1]),
+        **int8,
     }
     if notes:
         timing["notes"] = notes
     return {"query_ms": query_ms, "query_timing": timing}
+
+
+def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Tensor, warmup: int,
+                 counts: list[int], device: torch.device) -> dict[str, Any]:
+    """``quantize=int8``: ``query_ms.matl_int8`` (the int8 query path of :mod:`matl.models.quantize`,
+    calibrated on training positives, its own int8 gallery embeddings) on the same queries, at each thread
+    count like ``matl``, kept at its fastest; empty for ``quantize=none``. The float numbers are unchanged."""
+    from matl.models.quantize import apply_quantize_option, datamodule_calibration, quantize_option
+
+    if quantize_option(cfg) == "none":
+        return {"query_ms": {}}
+    recognizer = model.build_recognizer(datamodule.gallery)
+    start = time.perf_counter()
+    applied = apply_quantize_option(recognizer, cfg, lambda: datamodule_calibration(datamodule))
+    build_s = time.perf_counter() - start
+    if applied["quantize"] == "none":
+        return {"query_ms": {"matl_int8": None}, "matl_int8_fallback": applied["quantize_fallback"]}
+    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+    threads = int(min(by_threads, key=lambda n: by_threads[n]))
+    return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "matl_int8_ms_by_threads": by_threads,
+            "matl_int8_threads": threads, "matl_int8_build_s": build_s,
+            "matl_int8_path": "int8 (FX static quantisation, oneDNN; TorchScript, frozen) + float warps, search, pose"}
 
 
 def thread_counts(options: DictConfig) -> list[int]:
@@ -401,6 +426,8 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     """Run every measurement of ``cfg`` (see the module docstring); write and return ``bench.json``."""
     validate_config(cfg)
     options = bench_options(cfg)  # before any heavy import
+    if str(cfg.get("quantize") or "none") not in ("none", "int8"):
+        raise MatlError(f"quantize={cfg.get('quantize')} is invalid: use none or int8")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     device = torch.device(str(cfg.device) if cfg.device != "auto" else "cuda" if torch.cuda.is_available() else "cpu")
@@ -422,6 +449,9 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     results.update(measure_queries(cfg, options, datamodule, model, weights, device))
     q = results["query_ms"]
     results["speedup_vs_sift"] = q["sift_ransac"] / q["matl"] if q.get("sift_ransac") and q.get("matl") else None
+    if "matl_int8" in q:  # quantize=int8: an extra entry, next to the float numbers
+        results["speedup_int8_vs_sift"] = (q["sift_ransac"] / q["matl_int8"] if q.get("sift_ransac")
+                                           and q.get("matl_int8") else None)
     results["refine_added_ms"] = q["matl_refine"] - q["matl"] if q.get("matl_refine") is not None else None
 
     log.info("bench: gallery scaling")
@@ -438,7 +468,7 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     results["render_images_per_s"], results["render"] = measure_render(cfg, options)
     results["config"] = {"bench": OmegaConf.to_container(options, resolve=True), "data": _data_name(cfg),
                          "image_size": int(cfg.data.image_size), "N": int(cfg.N), "seed": int(cfg.seed),
-                         "ckpt": cfg.get("ckpt")}
+                         "ckpt": cfg.get("ckpt"), "quantize": cfg.get("quantize", "none")}
     write_json(out_dir / "bench.json", results)
     print_summary(results, console or Console())
     return results
@@ -482,6 +512,10 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
     table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
                   f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
     table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
+    if "matl_int8" in q:
+        table.add_row("query_ms.matl_int8", _fmt(q.get("matl_int8")),
+                      t.get("matl_int8_fallback") or f"quantize=int8; {t.get('matl_int8_threads')} thread(s)")
+        table.add_row("speedup_int8_vs_sift", _fmt(results.get("speedup_int8_vs_sift"), 1), "sift_ransac / matl_int8")
     table.add_row("render_images_per_s", _fmt(results["render_images_per_s"], 1),
                   results["render"].get("skipped", f"{results['render'].get('objects')} objects, canonical"))
     console.print(table)

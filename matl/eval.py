@@ -41,6 +41,7 @@ from matl.metrics import pose_metrics
 from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 from matl.models.inference import Prediction
 from matl.models.options import configure_recognizer
+from matl.models.quantize import apply_quantize_option, datamodule_calibration, quantize_option
 from matl.train import METRIC_NAMES, write_json
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
@@ -306,6 +307,7 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     """Evaluate a run's checkpoint or a baseline (see the module docstring); returns ``eval.json``'s content."""
     validate_config(cfg)  # eval's own options (device, timing_queries, ...), before anything is loaded
+    quantize_option(cfg)  # quantize=none|int8, checked before anything is loaded
     config, run_dir, data_name = effective_config(cfg)
     validate_config(config)
     out_dir = Path(cfg.paths.output_dir)
@@ -337,6 +339,9 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     else:
         model = build_model(config.model, ckpt, checkpoint_path, datamodule).to(device)
         predict = model.build_recognizer(datamodule.gallery)
+    quantize = {"quantize": quantize_option(cfg), "quantize_fallback": None}
+    if quantize["quantize"] != "none":  # quantize=int8, calibrated on training positives (matl/models/quantize.py)
+        quantize = apply_quantize_option(predict, cfg, lambda: datamodule_calibration(datamodule))
     predict, inference = configure_recognizer(predict, cfg)  # search=exact|faiss, refine=true (docs/speed.md)
 
     metrics, rows, degenerate = run_queries(predict, datamodule, device, show_progress)
@@ -358,6 +363,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
         "image_size": int(datamodule.image_size),
         "degenerate_queries": degenerate,
         **inference,
+        **quantize,
         **info,
     })
     write_json(out_dir / "eval.json", results)

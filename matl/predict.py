@@ -58,6 +58,7 @@ from matl.geometry import anchor_H_canon, transfer_points, warp_image
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
 from matl.models.inference import Prediction, Recognizer, embed
 from matl.models.options import configure_recognizer
+from matl.models.quantize import apply_quantize_option, calibration_images, quantize_option
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
 
@@ -393,6 +394,7 @@ def load_predictor(ckpt_path: str | Path, image_size: int | None = None,
 def predict(cfg: DictConfig) -> dict[str, Any]:
     """Run predict for a composed ``conf/predict.yaml``; returns a summary."""
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
+    quantize_option(cfg)  # quantize=none|int8
     for key in ("ckpt", "gallery", "images", "out"):
         if cfg.get(key) in (None, ""):
             raise MatlError(f"{key}=... is required: python -m matl.predict ckpt=<path> gallery=<dir> "
@@ -409,6 +411,8 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     gallery = enrolled.gallery.to(device)
     recognizer = Recognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
                             gallery_features=enrolled.features)
+    # quantize=int8: calibrated on gallery images warped by random homographies (matl/models/quantize.py)
+    quantize = apply_quantize_option(recognizer, cfg, lambda: calibration_images(gallery.images))
     recognizer, inference = configure_recognizer(recognizer, cfg)  # search=exact|faiss, refine=true
     out = Path(cfg.out).expanduser()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -421,7 +425,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
                                       float(cfg.query_fill), viz_dir, device)
     summary = {"predicted": done, "skipped": skipped, "out": str(out), "image_size": size, "N": num_anchors,
                "gallery_objects": len(gallery.object_names), "gallery_planes": len(enrolled.paths),
-               "viz_dir": None if viz_dir is None else str(viz_dir), **inference}
+               "viz_dir": None if viz_dir is None else str(viz_dir), **inference, **quantize}
     log.info("predict: %s", json.dumps(summary))
     return summary
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -224,6 +225,9 @@ class Recognizer(nn.Module):
         self.fast = fast
         self.compiled_max_batch = int(compiled_max_batch)
         self._compiled: CompiledQueryPath | None = None
+        #: optional reduced-precision path (:func:`matl.models.quantize.quantize_recognizer`), used for every
+        #: CPU float32 batch while the weights it was built from are unchanged; None: float32 only
+        self.quantized: Any = None
         self._pose_table: tuple[torch.Tensor, torch.Tensor] | None = None  # (source, float64 copy)
         if gallery_features is not None and len(gallery_features) != len(gallery):
             raise ValueError(f"{len(gallery_features)} gallery features for {len(gallery)} gallery images")
@@ -270,6 +274,10 @@ class Recognizer(nn.Module):
                       ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]:
         """The networks' part of a query, ``c(s(queries))``: ``(embedding (B, D), query_H_anchor (B, 3, 3)
         pixel or None without an STN, degenerate (B,), warped (B, 3, S, S))``, by the fastest path that applies."""
+        quantized = self.quantized
+        if (quantized is not None and queries.device.type == "cpu" and queries.dtype == torch.float32
+                and quantized.matches()):
+            return quantized(queries)
         compiled = self._compiled_path(queries)
         result = compiled(queries) if compiled is not None else None
         if result is not None:
