@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import pytest
 import torch
 from torch import nn
 
@@ -87,3 +90,31 @@ def test_nearest_is_exact_and_chunked() -> None:
     idx, dist = nearest(q, gal, chunk=64)
     ref = torch.cdist(q, gal).min(1)
     assert torch.equal(idx, ref.indices) and torch.allclose(dist, ref.values, atol=1e-5)
+
+
+class _FixedMetrics:
+    """A metrics collection that computes given values (what ``_log_metrics`` reads)."""
+
+    def __init__(self, values: dict[str, float]) -> None:
+        self.values = values
+
+    def compute(self) -> dict[str, torch.Tensor]:
+        return {k: torch.tensor(v) for k, v in self.values.items()}
+
+    def reset(self) -> None:
+        pass
+
+
+def test_checkpoint_score_is_pose_acc_with_rec_acc_breaking_ties() -> None:
+    from matl.models.evaluation import SCORE_TIE_BREAK, PoseEvaluationModule
+
+    module = PoseEvaluationModule(image_size=32, num_anchors=4)
+    module.log_dict = lambda *args, **kwargs: None  # no trainer: nothing to log into
+
+    def score(rec: float, pose: float) -> float:
+        return module._log_metrics(_FixedMetrics({"val/rec_acc": rec, "val/pose_acc_5px": pose}), "val/")["val/score"]
+
+    assert score(0.9, 0.0) > score(0.1, 0.0)             # all pose_acc 0 (an untrained pose): recognition decides
+    assert score(0.0, 0.001) > score(1.0, 0.0)           # one query of 1000 within 5 px outweighs any rec_acc
+    assert score(0.5, 0.2) == pytest.approx(0.2 + SCORE_TIE_BREAK * 0.5)
+    assert score(0.7, math.nan) == pytest.approx(0.7)    # no pose (TL): rec_acc alone

@@ -18,6 +18,9 @@ from matl.data.gallery import Gallery
 from matl.metrics import pose_metrics
 from matl.models.inference import Prediction
 
+#: weight of rec_acc in val/score when the model has a pose (tie-break of pose_acc_5px)
+SCORE_TIE_BREAK = 1e-4
+
 
 class PoseEvaluationModule(L.LightningModule):
     """Base LightningModule: gallery evaluation, ``val/score`` for checkpointing, optimisers.
@@ -74,9 +77,13 @@ class PoseEvaluationModule(L.LightningModule):
         values = {k: float(v) for k, v in metrics.compute().items()}
         metrics.reset()
         # A model without pose (TL) has NaN pose metrics: they are not logged, and the checkpoint
-        # score falls back to recognition accuracy.
+        # score falls back to recognition accuracy. With pose, rec_acc breaks ties: it adds at most
+        # SCORE_TIE_BREAK, less than one query's worth of pose_acc_5px on any split up to 1000 queries,
+        # so it only decides between epochs of equal pose_acc_5px (e.g. all 0 early in training,
+        # where keeping the first epoch would keep an untrained classifier).
         pose_acc = values.get(f"{prefix}pose_acc_5px", math.nan)
-        values[f"{prefix}score"] = values[f"{prefix}rec_acc"] if math.isnan(pose_acc) else pose_acc
+        rec_acc = values[f"{prefix}rec_acc"]
+        values[f"{prefix}score"] = rec_acc if math.isnan(pose_acc) else pose_acc + SCORE_TIE_BREAK * rec_acc
         self.log_dict({k: v for k, v in values.items() if not math.isnan(v)}, prog_bar=True)
         return values
 
