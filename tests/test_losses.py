@@ -55,7 +55,9 @@ def test_nce_loss_hand_computed() -> None:
     n = torch.tensor([[[0.0, 1.0], [-1.0, 0.0]]])
     tau = 0.5
     expected = -math.log(math.exp(1 / tau) / (math.exp(1 / tau) + math.exp(0) + math.exp(-1 / tau)))
-    assert math.isclose(float(NCELoss(tau)(a, p, n)), expected, rel_tol=1e-6)
+    assert math.isclose(float(NCELoss(tau, temperature_scaled=False)(a, p, n)), expected, rel_tol=1e-6)
     mask = torch.tensor([[True, False]])
     expected_masked = -math.log(math.exp(2) / (math.exp(2) + 1.0))
-    assert math.isclose(float(NCELoss(tau)(a, p, n, mask)), expected_masked, rel_tol=1e-6)
+    assert math.isclose(float(NCELoss(tau, temperature_scaled=False)(a, p, n, mask)), expected_masked, rel_tol=1e-6)
+    # the default (temperature-scaled) is Eq. 9 times tau
+    assert math.isclose(float(NCELoss(tau)(a, p, n)), tau * expected, rel_tol=1e-6)

@@ -44,13 +44,19 @@ class NCELoss(nn.Module):
     """Eq. 9: InfoNCE with the positive's cosine similarity to the selected anchor against M negatives.
 
     ``-log(exp(sim(p, a)/tau) / (exp(sim(p, a)/tau) + sum_j exp(sim(p, n_j)/tau)))``.
+
+    ``temperature_scaled`` (default, beyond the paper) multiplies it by ``tau``: its gradient with
+    respect to the cosine similarities is then bounded by 1 like the triplet loss's, whatever ``tau``.
+    Unscaled, at tau = 0.07 and the paper's SGD lr 0.01 (momentum 0.9), c() collapsed within 30 steps
+    (every embedding the same, loss stuck at log(M + 1)); docs/decisions.md.
     """
 
-    def __init__(self, tau: float = 0.07) -> None:
+    def __init__(self, tau: float = 0.07, temperature_scaled: bool = True) -> None:
         super().__init__()
         if tau <= 0:
             raise ValueError(f"loss.tau must be > 0, got {tau}")
         self.tau = tau
+        self.scale = tau if temperature_scaled else 1.0
 
     def forward(self, anchor: torch.Tensor, positive: torch.Tensor, negatives: torch.Tensor,
                 negative_mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -61,4 +67,4 @@ class NCELoss(nn.Module):
         if negative_mask is not None:
             sim_neg = sim_neg.masked_fill(~negative_mask, float("-inf"))
         logits = torch.cat([sim_pos, sim_neg], dim=1) / self.tau
-        return (torch.logsumexp(logits, dim=1) - logits[:, 0]).mean()
+        return self.scale * (torch.logsumexp(logits, dim=1) - logits[:, 0]).mean()
