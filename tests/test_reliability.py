@@ -83,22 +83,27 @@ def quiet_trainer(**kwargs) -> L.Trainer:
 def test_degenerate_stn_is_counted_and_logged(tmp_path: Path, cache_dir: Path,
                                               monkeypatch: pytest.MonkeyPatch) -> None:
     datamodule, model = tiny_model_and_data(tmp_path, cache_dir)
-    regress, forward = model.stn.regressor.forward, model.stn.forward
     flagged = {"train": 0, "eval": 0}
 
-    def half_nan(x: torch.Tensor) -> torch.Tensor:
-        H = regress(x).clone()
-        H[::2] = torch.nan  # every other row
-        return H
+    def half_nan(regress):
+        def regress_half_nan(x: torch.Tensor) -> torch.Tensor:
+            H = regress(x).clone()
+            H[::2] = torch.nan  # every other row
+            return H
+        return regress_half_nan
 
-    def counting_forward(images: torch.Tensor):  # what the guard flagged, by phase, independently of the module
-        out = forward(images)
-        flagged["train" if model.training else "eval"] += int(out.degenerate.sum())
-        assert torch.isfinite(out.warped).all() and torch.isfinite(out.query_H_anchor).all()
-        return out
+    def counting(run):  # what the guard flagged, by phase, independently of the module
+        def run_and_count(images: torch.Tensor):
+            out = run(images)
+            flagged["train" if model.training else "eval"] += int(out.degenerate.sum())
+            assert torch.isfinite(out.warped).all() and torch.isfinite(out.query_H_anchor).all()
+            return out
+        return run_and_count
 
-    monkeypatch.setattr(model.stn.regressor, "forward", half_nan)
-    monkeypatch.setattr(model.stn, "forward", counting_forward)
+    # training uses forward; evaluation the inference path (infer), so both are patched
+    for name in ("forward", "infer"):
+        monkeypatch.setattr(model.stn.regressor, name, half_nan(getattr(model.stn.regressor, name)))
+        monkeypatch.setattr(model.stn, name, counting(getattr(model.stn, name)))
     trainer = quiet_trainer(max_epochs=1, limit_train_batches=2, limit_val_batches=1, num_sanity_val_steps=0)
     trainer.fit(model, datamodule=datamodule)
     assert flagged["train"] >= 2 * 8 and flagged["eval"] >= 16  # at least half of 2 x 16 positives, 32 queries
