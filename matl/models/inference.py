@@ -23,7 +23,7 @@ from matl.geometry import check_images, compose_query_H_canon
 from matl.losses import appearance_distance
 from matl.models.feature import FeatureNet
 from matl.models.search import ExactSearch, GallerySearch, SearchFactory, nearest
-from matl.models.stn import SpatialTransformer, normalised_grid, warp_by_normalised
+from matl.models.stn import SpatialTransformer, degenerate_homographies, normalised_grid, warp_by_normalised
 
 # nearest lives in matl.models.search
 __all__ = ["CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest"]
@@ -89,9 +89,7 @@ class QueryGraph(nn.Module):
         H = self.regressor(images)
         for _ in range(self.iterations - 1):
             H = H @ self.regressor(warp_by_normalised(images, H, self.grid))
-        finite = torch.isfinite(H).all(dim=2).all(dim=1)
-        sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, self.eye))
-        bad = ~finite | (sv[:, -1] * self.max_condition <= sv[:, 0])
+        bad = degenerate_homographies(H, self.max_condition, self.eye)
         H = torch.where(bad[:, None, None], self.eye, torch.nan_to_num(H))
         warped = warp_by_normalised(images, H, self.grid)
         pixel = self.denorm @ (H @ self.norm)

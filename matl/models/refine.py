@@ -43,6 +43,7 @@ from kornia.geometry.transform import pyrdown
 
 from matl.geometry import compose_query_H_canon, normalised_to_pixel, pixel_to_normalised
 from matl.models.inference import Prediction
+from matl.models.stn import degenerate_homographies
 
 __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
 
@@ -205,9 +206,7 @@ class PhotometricRefiner:
         return torch.nan_to_num(value, nan=math.inf, posinf=math.inf)
 
     def _well_conditioned(self, H: torch.Tensor) -> torch.Tensor:
-        finite = torch.isfinite(H).all(dim=(-1, -2))
-        sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, torch.eye(3, dtype=H.dtype, device=H.device)))
-        return finite & (sv[:, -1] * self.max_condition > sv[:, 0])
+        return ~degenerate_homographies(H, self.max_condition)
 
     # ------------------------------------------------------------------------------------- main
     @torch.no_grad()

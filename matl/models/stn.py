@@ -91,6 +91,21 @@ def normalised_to_pixel_square(H_norm: torch.Tensor, size: int) -> torch.Tensor:
     return out / torch.where(h22.abs() > 1e-12, h22, torch.ones_like(h22))
 
 
+def degenerate_homographies(H: torch.Tensor, max_condition: float, eye: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B,)`` True where a ``(B, 3, 3)`` homography is unusable: a non-finite entry, or a condition
+    number (largest / smallest singular value) of at least ``max_condition`` (also the zero matrix).
+
+    The one rule of the STN's guard (training, inference, the traced query graph) and of the pose
+    refiner. ``eye``: the identity substituted before the SVD of non-finite matrices (a traced graph
+    passes its own constant); None makes one.
+    """
+    finite = torch.isfinite(H).all(dim=2).all(dim=1)
+    if eye is None:
+        eye = torch.eye(3, dtype=H.dtype, device=H.device)
+    sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, eye))
+    return ~finite | (sv[:, -1] * max_condition <= sv[:, 0])
+
+
 @dataclass
 class STNOutput:
     warped: torch.Tensor           # (B, 3, H, W) query in the anchor frame
@@ -197,9 +212,7 @@ class SpatialTransformer(nn.Module):
 
     def _guard(self, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
-            finite = torch.isfinite(H).all(dim=(-1, -2))
-            sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, torch.eye(3, device=H.device)))
-            bad = ~finite | (sv[:, -1] * self.max_condition <= sv[:, 0])  # also catches the zero matrix
+            bad = degenerate_homographies(H, self.max_condition)
         if bad.any():
             eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
             H = torch.where(bad[:, None, None], eye, torch.nan_to_num(H))
@@ -228,8 +241,7 @@ class SpatialTransformer(nn.Module):
         """:meth:`_guard` with a shortcut on the CPU for the usual case (every matrix finite and well
         conditioned: H is returned as is, the same outcome with a third of the ops)."""
         if H.device.type == "cpu" and bool(torch.isfinite(H).all()):
-            sv = torch.linalg.svdvals(H)
-            bad = sv[:, -1] * self.max_condition <= sv[:, 0]
+            bad = degenerate_homographies(H, self.max_condition)
             if not bool(bad.any()):
                 return H, bad
         return self._guard(H)
