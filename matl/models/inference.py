@@ -23,7 +23,13 @@ from matl.geometry import check_images, compose_query_H_canon
 from matl.losses import appearance_distance
 from matl.models.feature import FeatureNet
 from matl.models.search import ExactSearch, GallerySearch, SearchFactory, nearest
-from matl.models.stn import SpatialTransformer, degenerate_homographies, normalised_grid, warp_by_normalised
+from matl.models.stn import (
+    SpatialTransformer,
+    degenerate_homographies,
+    normalised_grid,
+    pixel_from_normalised,
+    warp_by_normalised,
+)
 
 # nearest lives in matl.models.search
 __all__ = ["CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest"]
@@ -79,10 +85,9 @@ class QueryGraph(nn.Module):
         self.size = size
         self.register_buffer("grid", normalised_grid(size, size).clone(), persistent=False)  # (3, S*S)
         # pixel -> normalised coordinates (align_corners=True) and back
-        norm = torch.tensor([[2.0 / (size - 1), 0.0, -1.0], [0.0, 2.0 / (size - 1), -1.0], [0.0, 0.0, 1.0]],
-                            dtype=torch.float64)
-        self.register_buffer("norm", norm.float(), persistent=False)
-        self.register_buffer("denorm", torch.linalg.inv(norm).float(), persistent=False)
+        denorm, norm = pixel_from_normalised(size, torch.device("cpu"), torch.float32)
+        self.register_buffer("norm", norm.clone(), persistent=False)
+        self.register_buffer("denorm", denorm.clone(), persistent=False)
         self.register_buffer("eye", torch.eye(3), persistent=False)
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

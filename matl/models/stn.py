@@ -74,7 +74,7 @@ def warp_by_normalised(images: torch.Tensor, src_H_dst_norm: torch.Tensor, grid:
 
 
 @lru_cache(maxsize=32)
-def _pixel_from_normalised(size: int, device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_from_normalised(size: int, device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """``(pixel_H_norm, norm_H_pixel)`` of a ``size`` x ``size`` image (``align_corners=True``), cached."""
     with torch.inference_mode(False), torch.no_grad():
         norm = torch.tensor([[2.0 / (size - 1), 0.0, -1.0], [0.0, 2.0 / (size - 1), -1.0], [0.0, 0.0, 1.0]],
@@ -85,7 +85,7 @@ def _pixel_from_normalised(size: int, device: torch.device, dtype: torch.dtype) 
 def normalised_to_pixel_square(H_norm: torch.Tensor, size: int) -> torch.Tensor:
     """:func:`matl.geometry.normalised_to_pixel` for ``size`` x ``size`` images, with cached matrices:
     ``pixel_H_norm @ H_norm @ norm_H_pixel`` scaled so that ``H[2, 2] = 1``."""
-    pixel_H_norm, norm_H_pixel = _pixel_from_normalised(int(size), H_norm.device, H_norm.dtype)
+    pixel_H_norm, norm_H_pixel = pixel_from_normalised(int(size), H_norm.device, H_norm.dtype)
     out = pixel_H_norm @ (H_norm @ norm_H_pixel)
     h22 = out[:, 2:3, 2:3]
     return out / torch.where(h22.abs() > 1e-12, h22, torch.ones_like(h22))
