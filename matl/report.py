@@ -241,6 +241,14 @@ def describe(cfg: DictConfig | None, kind: str, metrics: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
+def hydra_choices(run_dir: Path) -> dict[str, Any]:
+    """The config group choices of a run (``<run>/.hydra/hydra.yaml``); empty when it has none."""
+    hydra_file = run_dir / ".hydra" / "hydra.yaml"
+    if not hydra_file.is_file():
+        return {}
+    return dict(OmegaConf.select(OmegaConf.load(hydra_file), "hydra.runtime.choices", default={}) or {})
+
+
 def evaluation_method(kind: str, metrics: dict[str, Any], baseline: str) -> str:
     """The method a ``matl.eval`` run evaluated, named as in Table 1 where it is a Table 1 row.
 
@@ -254,9 +262,7 @@ def evaluation_method(kind: str, metrics: dict[str, Any], baseline: str) -> str:
     cfg_file = Path(str(metrics.get("run"))) / ".hydra" / "config.yaml"
     if metrics.get("run") and cfg_file.is_file():
         cfg = OmegaConf.load(cfg_file)
-        hydra_file = cfg_file.parent / "hydra.yaml"
-        choices = dict(OmegaConf.select(OmegaConf.load(hydra_file), "hydra.runtime.choices", default={}) or {}) \
-            if hydra_file.is_file() else {}
+        choices = hydra_choices(cfg_file.parent.parent)
         row = classify_training(cfg, dataset_name(_select(cfg, "data"), choices.get("data")))[0]
         name = f"({row}) {PAPER_TABLE1[row][0]}" if row else describe(cfg, "train", {})
     return name + (" + refinement" if metrics.get("refine") else "")
@@ -264,11 +270,9 @@ def evaluation_method(kind: str, metrics: dict[str, Any], baseline: str) -> str:
 
 def load_run(path: Path) -> Run:
     """Read one run folder (see :class:`Run`)."""
-    cfg_file, hydra_file = path / ".hydra" / "config.yaml", path / ".hydra" / "hydra.yaml"
+    cfg_file = path / ".hydra" / "config.yaml"
     cfg = OmegaConf.load(cfg_file) if cfg_file.is_file() else None
-    choices: dict[str, Any] = {}
-    if hydra_file.is_file():
-        choices = dict(OmegaConf.select(OmegaConf.load(hydra_file), "hydra.runtime.choices", default={}) or {})
+    choices = hydra_choices(path)
     metrics: dict[str, Any] = {}
     status, reason, mtime = "incomplete", None, 0.0
     for name in ("eval.json", "metrics.json"):
