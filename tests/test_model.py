@@ -105,16 +105,22 @@ class _FixedMetrics:
         pass
 
 
-def test_checkpoint_score_is_pose_acc_with_rec_acc_breaking_ties() -> None:
-    from matl.models.evaluation import SCORE_TIE_BREAK, PoseEvaluationModule
+def test_checkpoint_score_weighs_recognition_and_pose_alike() -> None:
+    from matl.models.evaluation import PoseEvaluationModule
 
-    module = PoseEvaluationModule(image_size=32, num_anchors=4)
-    module.log_dict = lambda *args, **kwargs: None  # no trainer: nothing to log into
+    def scorer(weights: dict[str, float] | None):
+        module = PoseEvaluationModule(image_size=32, num_anchors=4, score_weights=weights)
+        module.log_dict = lambda *args, **kwargs: None  # no trainer: nothing to log into
+        return lambda rec, pose: module._log_metrics(
+            _FixedMetrics({"val/rec_acc": rec, "val/pose_acc_5px": pose}), "val/")["val/score"]
 
-    def score(rec: float, pose: float) -> float:
-        return module._log_metrics(_FixedMetrics({"val/rec_acc": rec, "val/pose_acc_5px": pose}), "val/")["val/score"]
-
+    score = scorer(None)
+    assert score(0.5, 0.2) == pytest.approx(0.7)
     assert score(0.9, 0.0) > score(0.1, 0.0)             # all pose_acc 0 (an untrained pose): recognition decides
-    assert score(0.0, 0.001) > score(1.0, 0.0)           # one query of 1000 within 5 px outweighs any rec_acc
-    assert score(0.5, 0.2) == pytest.approx(0.2 + SCORE_TIE_BREAK * 0.5)
+    # the default run of session 2: epoch 4 (rec 0.950, pose 0.130) beats epoch 7 (0.890, 0.133)
+    assert score(0.950, 0.130) > score(0.890, 0.133)
     assert score(0.7, math.nan) == pytest.approx(0.7)    # no pose (TL): rec_acc alone
+    pose_only = scorer({"pose_acc_5px": 1.0})
+    assert pose_only(0.1, 0.3) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="score_weights"):
+        PoseEvaluationModule(image_size=32, num_anchors=4, score_weights={"accuracy": 1.0})

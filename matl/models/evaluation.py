@@ -18,8 +18,10 @@ from matl.data.gallery import Gallery
 from matl.metrics import pose_metrics
 from matl.models.inference import Prediction
 
-#: weight of rec_acc in val/score when the model has a pose (tie-break of pose_acc_5px)
-SCORE_TIE_BREAK = 1e-4
+#: val/score = sum of weight x metric over the metrics a model has (a model without pose has NaN pose
+#: metrics; they drop out). Recognition and 5-px pose accuracy count alike: see docs/decisions.md.
+SCORE_METRICS = ("rec_acc", "pose_acc_5px", "pose_err", "corner_err_px", "corner_err_px_median")
+DEFAULT_SCORE_WEIGHTS: dict[str, float] = {"rec_acc": 1.0, "pose_acc_5px": 1.0}
 
 
 class PoseEvaluationModule(L.LightningModule):
@@ -29,12 +31,19 @@ class PoseEvaluationModule(L.LightningModule):
         image_size: model image side (metrics scale their pixel threshold with it).
         num_anchors: N anchors per plane in the evaluation gallery.
         optimizer / scheduler: partially-instantiated torch optimiser / LR scheduler factories.
+        score_weights: ``{metric: weight}`` of ``val/score``, the checkpoint-selection score
+            (DESIGN §3 metric names without prefix; default: rec_acc + pose_acc_5px).
     """
 
     def __init__(self, image_size: int, num_anchors: int,
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-                 scheduler: Callable[..., Any] | None = None) -> None:
+                 scheduler: Callable[..., Any] | None = None,
+                 score_weights: dict[str, float] | None = None) -> None:
         super().__init__()
+        self.score_weights = dict(DEFAULT_SCORE_WEIGHTS if score_weights is None else score_weights)
+        unknown = sorted(set(self.score_weights) - set(SCORE_METRICS))
+        if unknown or not self.score_weights:
+            raise ValueError(f"model.score_weights: unknown or no metric {unknown}; use some of {list(SCORE_METRICS)}")
         self.image_size, self.num_anchors = int(image_size), int(num_anchors)
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.val_metrics = pose_metrics(self.image_size, "val/")
@@ -76,14 +85,9 @@ class PoseEvaluationModule(L.LightningModule):
     def _log_metrics(self, metrics: Any, prefix: str) -> dict[str, float]:
         values = {k: float(v) for k, v in metrics.compute().items()}
         metrics.reset()
-        # A model without pose (TL) has NaN pose metrics: they are not logged, and the checkpoint
-        # score falls back to recognition accuracy. With pose, rec_acc breaks ties: it adds at most
-        # SCORE_TIE_BREAK, less than one query's worth of pose_acc_5px on any split up to 1000 queries,
-        # so it only decides between epochs of equal pose_acc_5px (e.g. all 0 early in training,
-        # where keeping the first epoch would keep an untrained classifier).
-        pose_acc = values.get(f"{prefix}pose_acc_5px", math.nan)
-        rec_acc = values[f"{prefix}rec_acc"]
-        values[f"{prefix}score"] = rec_acc if math.isnan(pose_acc) else pose_acc + SCORE_TIE_BREAK * rec_acc
+        # A model without pose (TL) has NaN pose metrics: they are not logged and drop out of the score.
+        values[f"{prefix}score"] = sum(weight * values[f"{prefix}{name}"] for name, weight in self.score_weights.items()
+                                       if not math.isnan(values.get(f"{prefix}{name}", math.nan)))
         self.log_dict({k: v for k, v in values.items() if not math.isnan(v)}, prog_bar=True)
         return values
 

@@ -53,8 +53,8 @@ class MATLModule(PoseEvaluationModule):
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  scheduler: Callable[..., Any] | None = None, image_size: int = 100,
                  anchor_choice: str = "feature", appearance_levels: int = 1,
-                 appearance: str = "forward") -> None:
-        super().__init__(image_size, num_anchors, optimizer, scheduler)
+                 appearance: str = "forward", score_weights: dict[str, float] | None = None) -> None:
+        super().__init__(image_size, num_anchors, optimizer, scheduler, score_weights)
         if lam < 0:
             raise ValueError(f"lam must be >= 0, got {lam}")
         if appearance not in ("forward", "symmetric"):

@@ -105,15 +105,17 @@ class STNClassifierModule(PoseEvaluationModule):
         num_anchors: N anchors per plane of the evaluation gallery (used for the pose only).
         image_size: model image side.
         optimizer / scheduler: partially-instantiated torch optimiser / LR scheduler factories.
+        score_weights: weights of the checkpoint-selection ``val/score`` (see PoseEvaluationModule).
     """
 
     def __init__(self, stn: SpatialTransformer, trunk: FeatureNet, hidden: int = 128,
                  num_classes: int | None = None, num_anchors: int = 4, image_size: int = 100,
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-                 scheduler: Callable[..., Any] | None = None) -> None:
+                 scheduler: Callable[..., Any] | None = None,
+                 score_weights: dict[str, float] | None = None) -> None:
         if num_anchors < 1:
             raise ValueError(f"N (number of anchors) must be >= 1, got {num_anchors}")
-        super().__init__(image_size, num_anchors, optimizer, scheduler)
+        super().__init__(image_size, num_anchors, optimizer, scheduler, score_weights)
         self.stn, self.trunk = stn, trunk
         self.fc1 = nn.Linear(trunk.embedding_dim, hidden)
         self.fc2: nn.Linear | None = None
