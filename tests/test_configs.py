@@ -6,6 +6,7 @@ from pathlib import Path
 
 import hydra
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR, compose_config
@@ -36,7 +37,13 @@ def test_model_instantiates_with_paper_defaults(tmp_path: Path) -> None:
     model = hydra.utils.instantiate(cfg.model)
     assert model.lam == 10.0 and model.num_anchors == 4
     assert model.feature_net.embedding_dim == 128
-    optimizer = model.configure_optimizers()
+    configured = model.configure_optimizers()
+    optimizer, scheduler = configured["optimizer"], configured["lr_scheduler"]["scheduler"]
     assert optimizer.defaults["lr"] == 0.01 and optimizer.defaults["momentum"] == 0.9
+    # cosine decay over the run's epochs (docs/decisions.md); the paper's constant rate under scale=paper
+    assert isinstance(scheduler, torch.optim.lr_scheduler.CosineAnnealingLR)
+    assert scheduler.T_max == cfg.trainer.max_epochs
+    paper = hydra.utils.instantiate(compose_config("train", ["scale=paper"], tmp_path).model)
+    assert isinstance(paper.configure_optimizers(), torch.optim.SGD)
     tl = hydra.utils.instantiate(compose_config("train", ["model=tl"], tmp_path).model)
     assert tl.stn is None
