@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 COLUMNS = ("rec_acc", "pose_err", "corner_err_px", "corner_err_px_median", "pose_acc_5px", "query_ms")
 RESULT_FILES = ("metrics.json", "eval.json", "failed.json")
@@ -170,6 +170,27 @@ def dataset_name(data: DictConfig | None, choice: str | None = None) -> str:
     return name
 
 
+def config_container(cfg: DictConfig, constants: Iterable[str] = ("seed",)) -> dict[str, Any]:
+    """A run's config as plain containers, each top-level node resolved where it can be, so two runs whose
+    settings resolve alike group together however they were written (``T_max: 8`` and
+    ``T_max: ${trainer.max_epochs}`` with 8 epochs). A node that needs Hydra's runtime (the run folder)
+    stays unresolved. The top-level ``constants`` (default: ``seed``) are set to 0 first: nodes that copy
+    them (``data.seed: ${seed}``) must not split one configuration's seeds into groups."""
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        for key in constants:
+            if key in cfg:
+                cfg[key] = 0
+    container: dict[str, Any] = {}
+    for key in cfg:
+        try:
+            container[str(key)] = OmegaConf.to_container(cfg[key], resolve=True) if OmegaConf.is_config(cfg[key]) \
+                else OmegaConf.select(cfg, str(key))
+        except Exception:  # e.g. ${hydra:runtime.output_dir} outside a Hydra app
+            container[str(key)] = OmegaConf.to_container(cfg, resolve=False)[key]
+    return container
+
+
 def fingerprint(container: Any, drop: Iterable[str] = ()) -> str:
     """Short hash of a config container without :data:`IGNORED_KEYS` (and ``drop``)."""
     if isinstance(container, dict):
@@ -284,7 +305,7 @@ def load_run(path: Path) -> Run:
             failed = json.loads((path / "failed.json").read_text())
             status, reason, mtime = "failed", str(failed.get("reason", "?")), (path / "failed.json").stat().st_mtime
     is_eval = (path / "eval.json").is_file() or _select(cfg, "task_name") == "eval"
-    container = OmegaConf.to_container(cfg, resolve=False) if cfg is not None else {"run": path.name}
+    container = config_container(cfg) if cfg is not None else {"run": path.name}
     if is_eval:
         baseline = metrics.get("baseline") or choices.get("baseline")
         if baseline is None and _select(cfg, "baseline._target_") is not None:  # a run without eval.json
@@ -312,7 +333,7 @@ def load_run(path: Path) -> Run:
     if cfg is not None:
         run.table1, run.table2, family = classify_training(cfg, dataset)
         if family:
-            run.fig4 = (fingerprint(container, drop=("N",)), int(_select(cfg, "N")))
+            run.fig4 = (fingerprint(config_container(cfg, ("seed", "N")), drop=("N",)), int(_select(cfg, "N")))
     return run
 
 

@@ -232,3 +232,16 @@ def test_fig5_from_two_checkpoints(tmp_path: Path, cache_dir: Path) -> None:
     rep = report.build_report([], tmp_path / "rep", fig5=[single, matl])
     assert (tmp_path / "rep" / "fig5.png").is_file() and "![Fig. 5](fig5.png)" in (rep.out / "report.md").read_text()
     assert not math.isnan(float(panels.matl.mean()))
+
+
+def test_configs_that_resolve_alike_group_together() -> None:
+    from matl.report import config_container, fingerprint
+
+    def run(t_max: object, seed: int) -> str:
+        trainer = {"max_epochs": 8, "default_root_dir": "${hydra:runtime.output_dir}"}  # unresolvable here
+        cfg = OmegaConf.create({"seed": seed, "trainer": trainer, "data": {"seed": "${seed}"},
+                                "model": {"scheduler": {"T_max": t_max}}})
+        return fingerprint(config_container(cfg))
+
+    assert run(8, 0) == run("${trainer.max_epochs}", 1) == run("${trainer.max_epochs}", 2)  # seeds of one setting
+    assert run(4, 0) != run(8, 0)
