@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torch import nn
 
@@ -142,3 +144,26 @@ def test_single_chunk_search_equals_chunked() -> None:
     one, chunked = nearest(q, gal), nearest(q, gal, chunk=7)
     assert torch.equal(one[0], chunked[0]) and torch.allclose(one[1], chunked[1])
     assert int(one[0][2]) == 0 and one[1][2] == float("inf")
+
+
+def test_matl_fast_networks_take_the_same_fast_paths(tmp_path: Path) -> None:
+    """``model=matl_fast`` (coarser strides): compiled single queries and eager batches equal its training path."""
+    import hydra
+
+    from tests.conftest import compose_config
+
+    cfg = compose_config("train", ["model=matl_fast", f"data.image_size={S}"], tmp_path)
+    torch.manual_seed(3)
+    feature_net, stn = hydra.utils.instantiate(cfg.model.feature_net), hydra.utils.instantiate(cfg.model.stn)
+    assert stn.regressor.features[0].stride == (4, 4) and feature_net.pool.kernel_size == 4
+    nn.init.normal_(stn.regressor.fc2.weight, std=0.02)
+    feature_net, stn = feature_net.eval(), stn.eval()
+    gal = gallery(feature_net)
+    queries = warp_image(gal.images[[0, 5, 10]], random_homographies(3, 4, 0.02))
+    ref = Recognizer(feature_net, stn, gal, fast=False)(queries)
+    single = Recognizer(feature_net, stn, gal)
+    one = [single(queries[i:i + 1]) for i in range(len(queries))]
+    assert single._compiled is not None and single._compiled.failure is None
+    assert torch.equal(torch.cat([p.gallery_index for p in one]), ref.gallery_index)
+    assert torch.allclose(torch.cat([p.query_H_canon for p in one]), ref.query_H_canon, rtol=1e-5, atol=1e-4)
+    assert torch.allclose(torch.cat([p.distance for p in one]), ref.distance, atol=1e-5)
