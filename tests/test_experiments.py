@@ -70,12 +70,13 @@ def test_rows_compose_with_every_scale(row: str, scale: str | None, tmp_path: Pa
     assert model.num_anchors == cfg.N if hasattr(model, "num_anchors") else True
 
 
-@pytest.mark.parametrize("model", ["matl", "tl", "stn_classifier"])
+@pytest.mark.parametrize("model", ["matl", "matl_fast", "tl", "stn_classifier"])
 def test_paper_scale_sets_the_papers_model_behaviour(model: str, tmp_path: Path) -> None:
     cfg = compose_config("train", ["scale=paper", f"model={model}"], tmp_path)
     OmegaConf.resolve(cfg)
     assert cfg.trainer.max_epochs == 100 and cfg.trainer.accelerator == "gpu"
     assert cfg.model.optimizer.lr == 0.01 and cfg.model.optimizer.momentum == 0.9
+    assert cfg.model.scheduler is None  # the paper's constant rate
     assert cfg.data.image_size == 100 and cfg.data.test_queries == 1000
     if model == "tl":
         assert cfg.model.stn is None  # no STN appears from the scale
