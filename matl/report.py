@@ -181,13 +181,14 @@ def config_container(cfg: DictConfig, constants: Iterable[str] = ("seed",)) -> d
         for key in constants:
             if key in cfg:
                 cfg[key] = 0
+    unresolved = OmegaConf.to_container(cfg, resolve=False)
     container: dict[str, Any] = {}
     for key in cfg:
         try:
             container[str(key)] = OmegaConf.to_container(cfg[key], resolve=True) if OmegaConf.is_config(cfg[key]) \
                 else OmegaConf.select(cfg, str(key))
         except Exception:  # e.g. ${hydra:runtime.output_dir} outside a Hydra app
-            container[str(key)] = OmegaConf.to_container(cfg, resolve=False)[key]
+            container[str(key)] = unresolved[key]
     return container
 
 
