@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import hydra
 import torch
 from torch import nn
 
@@ -13,6 +14,7 @@ from matl.models.feature import FeatureNet
 from matl.models.inference import CompiledQueryPath, QueryGraph, Recognizer
 from matl.models.search import nearest
 from matl.models.stn import HomographyRegressor, SpatialTransformer, normalised_to_pixel_square, warp_by_normalised
+from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes
 
 S = 32
@@ -148,10 +150,6 @@ def test_single_chunk_search_equals_chunked() -> None:
 
 def test_matl_fast_networks_take_the_same_fast_paths(tmp_path: Path) -> None:
     """``model=matl_fast`` (coarser strides): compiled single queries and eager batches equal its training path."""
-    import hydra
-
-    from tests.conftest import compose_config
-
     cfg = compose_config("train", ["model=matl_fast", f"data.image_size={S}"], tmp_path)
     torch.manual_seed(3)
     feature_net, stn = hydra.utils.instantiate(cfg.model.feature_net), hydra.utils.instantiate(cfg.model.stn)
