@@ -45,6 +45,7 @@ from matl.models.quantize import apply_quantize_option, datamodule_calibration, 
 from matl.train import METRIC_NAMES, write_json
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
+from matl.utils.sweep import clear_failed, is_multirun, run_sweep_job
 from matl.utils.timing import median_query_ms
 
 log = logging.getLogger(__name__)
@@ -368,6 +369,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     })
     write_json(out_dir / "eval.json", results)
     _write_csv(out_dir / "per_query.csv", rows)
+    clear_failed(out_dir)  # an evaluation re-run after it had failed in a sweep
     log.info("eval: %s", json.dumps(results))
     return results
 
@@ -376,7 +378,10 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
 @hydra.main(config_path="../conf", config_name="eval", version_base="1.3")
 @exit_on_error  # inside hydra.main: a MatlError prints one line and exits 2, no Hydra traceback
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+    if is_multirun():  # one failing evaluation must not end the sweep: failed.json (matl/utils/sweep.py)
+        run_sweep_job(evaluate, cfg)
+    else:
+        evaluate(cfg)
 
 
 if __name__ == "__main__":

@@ -218,10 +218,23 @@ def main(cfg: DictConfig) -> float | None:
             return math.nan
     else:
         results = train(cfg)
+    return sweep_value(results, cfg)
+
+
+def sweep_value(results: dict[str, Any], cfg: DictConfig) -> float | None:
+    """The number a Hydra sweeper optimises: the test value of ``optimized_metric``.
+
+    ``val/score`` (checkpoint selection) becomes the same weighted sum of the *test* metrics
+    (``model.score_weights``), so an Optuna sweep ranks runs by what selected their checkpoints.
+    """
+    from matl.models.evaluation import DEFAULT_SCORE_WEIGHTS, weighted_score
+
     metric = str(cfg.get("optimized_metric", "")).split("/")[-1]
-    value = results.get("pose_acc_5px" if metric == "score" else metric)
-    if value is None and metric == "score":
-        value = results.get("rec_acc")
+    if metric == "score":
+        weights = OmegaConf.select(cfg, "model.score_weights", default=None)
+        weights = DEFAULT_SCORE_WEIGHTS if weights is None else OmegaConf.to_container(weights)
+        return weighted_score(results, weights)
+    value = results.get(metric)
     return None if value is None else float(value)
 
 

@@ -54,6 +54,29 @@ def test_run_sweep_job_records_the_failure(tmp_path: Path) -> None:
         sweep.run_sweep_job(lambda c: (_ for _ in ()).throw(KeyboardInterrupt()), cfg)
 
 
+def test_sweep_value_is_the_test_side_of_the_selection_score(tmp_path: Path) -> None:
+    from matl.train import sweep_value
+
+    results = {"rec_acc": 0.9, "pose_err": 0.5, "pose_acc_5px": 0.25}
+    assert sweep_value(results, _cfg(tmp_path)) == pytest.approx(1.15)  # default score: rec_acc + pose_acc_5px
+    weighted = _cfg(tmp_path, ["model.score_weights.rec_acc=2", "model.score_weights.pose_acc_5px=-1"])
+    assert sweep_value(results, weighted) == pytest.approx(1.55)
+    assert sweep_value({"rec_acc": 0.8, "pose_acc_5px": None}, _cfg(tmp_path)) == pytest.approx(0.8)  # TL: no pose
+    assert sweep_value(results, _cfg(tmp_path, ["optimized_metric=val/rec_acc"])) == 0.9
+
+
+def test_eval_multirun_continues_past_failing_jobs(tmp_path: Path) -> None:
+    sweep_dir = tmp_path / "sweep"
+    args = [sys.executable, "-m", "matl.eval", "-m", f"run={tmp_path}/missing_a,{tmp_path}/missing_b",
+            f"hydra.sweep.dir={sweep_dir}"]
+    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for job, name in ((0, "missing_a"), (1, "missing_b")):  # the first failure did not end the sweep
+        failed = json.loads((sweep_dir / str(job) / "failed.json").read_text())
+        assert failed["reason"] == f"MatlError: run={tmp_path}/{name}: no such folder"
+    assert "2 job(s) failed" in done.stdout + done.stderr
+
+
 def test_local_ddp_inside_a_multirun_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     for key in ("SLURM_NTASKS", "TORCHELASTIC_RUN_ID", "LOCAL_RANK"):
         monkeypatch.delenv(key, raising=False)

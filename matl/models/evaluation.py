@@ -8,7 +8,7 @@ the DESIGN §3 metrics the same way for every model, so their numbers are compar
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import lightning as L
@@ -21,6 +21,19 @@ from matl.models.inference import Prediction
 #: val/score = sum of weight x metric over the metrics a model has (a model without pose has NaN pose
 #: metrics; they drop out). Recognition and 5-px pose accuracy count alike: see docs/decisions.md.
 DEFAULT_SCORE_WEIGHTS: dict[str, float] = {"rec_acc": 1.0, "pose_acc_5px": 1.0}
+
+
+def weighted_score(values: Mapping[str, float | None], weights: Mapping[str, float], prefix: str = "") -> float:
+    """``sum(weight x values[prefix + name])`` over the metrics that are defined (not None, not NaN).
+
+    A model without pose (TL) has undefined pose metrics: they drop out instead of making the score NaN.
+    """
+    total = 0.0
+    for name, weight in weights.items():
+        value = values.get(f"{prefix}{name}")
+        if value is not None and not math.isnan(value):
+            total += float(weight) * float(value)
+    return total
 
 
 class PoseEvaluationModule(L.LightningModule):
@@ -86,8 +99,7 @@ class PoseEvaluationModule(L.LightningModule):
         values = {k: float(v) for k, v in metrics.compute().items()}
         metrics.reset()
         # A model without pose (TL) has NaN pose metrics: they are not logged and drop out of the score.
-        values[f"{prefix}score"] = sum(weight * values[f"{prefix}{name}"] for name, weight in self.score_weights.items()
-                                       if not math.isnan(values.get(f"{prefix}{name}", math.nan)))
+        values[f"{prefix}score"] = weighted_score(values, self.score_weights, prefix)
         self.log_dict({k: v for k, v in values.items() if not math.isnan(v)}, prog_bar=True)
         return values
 
