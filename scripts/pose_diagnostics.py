@@ -21,31 +21,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from matl.geometry import HomographySampler
+from matl.geometry import HomographySampler, image_corners, transfer_points
 
 SIZE = 100
-
-
-def image_corners(size: int) -> np.ndarray:
-    """``(3, 4)`` homogeneous pixel corners of a ``size`` x ``size`` image."""
-    last = size - 1.0
-    return np.array([[0.0, 0.0, 1.0], [last, 0.0, 1.0], [last, last, 1.0], [0.0, last, 1.0]]).T
-
-
-def project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``(B, 3, 3)`` homographies applied to ``(3, K)`` points -> ``(B, K, 2)``."""
-    mapped = H @ points
-    return (mapped[:, :2] / mapped[:, 2:]).transpose(0, 2, 1)
 
 
 def affine_floor(focal: float, samples: int, seed: int = 0) -> np.ndarray:
     """Mean corner distance ``(samples,)`` between each sampled homography and its best affine fit."""
     sampler = HomographySampler(focal=focal)
     footprint = torch.tensor([[20.0, 20.0], [80.0, 20.0], [80.0, 80.0], [20.0, 80.0]]).expand(samples, 4, 2)
-    H = sampler.sample(samples, (SIZE, SIZE), torch.Generator().manual_seed(seed), footprint).numpy()
-    corners = image_corners(SIZE)
-    target = project(H, corners)                                    # (B, 4, 2)
-    design = corners.T                                              # (4, 3): x, y, 1
+    H = sampler.sample(samples, (SIZE, SIZE), torch.Generator().manual_seed(seed), footprint).double()
+    corners = image_corners((SIZE, SIZE), torch.float64)                       # (4, 2)
+    target = transfer_points(H, corners.expand(samples, 4, 2)).numpy()         # (B, 4, 2)
+    design = np.concatenate([corners.numpy(), np.ones((4, 1))], axis=1)        # (4, 3): x, y, 1
     affine, *_ = np.linalg.lstsq(design, target.transpose(1, 0, 2).reshape(4, -1), rcond=None)
     fitted = (design @ affine).reshape(4, samples, 2).transpose(1, 0, 2)
     return np.linalg.norm(fitted - target, axis=-1).mean(-1)
