@@ -46,9 +46,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from rich.console import Console
 from rich.table import Table
 
-from matl.train import instantiate_node, write_json
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
+from matl.utils.instantiate import instantiate_node
+from matl.utils.io import write_json
 from matl.utils.timing import median_query_ms
 
 # matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
@@ -183,9 +184,9 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
                     device: torch.device) -> dict[str, Any]:
     """``query_ms`` of MATL (exact, refined, faiss) and of the keypoint baseline on the same queries."""
     from matl.eval import BaselineRecognizer, build_baseline
-    from matl.models.options import search_name
-    from matl.models.refine import RefinedRecognizer
-    from matl.models.search import ExactSearch
+    from matl.inference.options import search_name
+    from matl.inference.refine import RefinedRecognizer
+    from matl.inference.search import ExactSearch
 
     warmup, count = int(options.query_warmup), int(options.queries)
     queries = _query_images(datamodule, warmup + count, device)
@@ -254,10 +255,10 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
 
 def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Tensor, warmup: int,
                  counts: list[int], device: torch.device) -> dict[str, Any]:
-    """``quantize=int8``: ``query_ms.matl_int8`` (the int8 query path of :mod:`matl.models.quantize`,
+    """``quantize=int8``: ``query_ms.matl_int8`` (the int8 query path of :mod:`matl.inference.quantize`,
     calibrated on training positives, its own int8 gallery embeddings) on the same queries, at each thread
     count like ``matl``, kept at its fastest; empty for ``quantize=none``. The float numbers are unchanged."""
-    from matl.models.quantize import apply_quantize_option, datamodule_calibration, quantize_option
+    from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
 
     if quantize_option(cfg) == "none":
         return {"query_ms": {}}
@@ -330,8 +331,8 @@ def fixed_query_ms(model: Any, recognizer: Any, queries: torch.Tensor, warmup: i
 def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: float,
                     device: torch.device, threads: int | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Search latency per gallery size, exact and (when installed) FAISS; see the module docstring."""
-    from matl.models.options import search_name
-    from matl.models.search import ExactSearch, FaissSearch, require_faiss
+    from matl.inference.options import search_name
+    from matl.inference.search import ExactSearch, FaissSearch, require_faiss
 
     dim = int(getattr(model.feature_net, "embedding_dim", 0)) or int(
         model.feature_net(torch.zeros(1, 3, model.image_size, model.image_size, device=device)).shape[1])

@@ -37,14 +37,14 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from matl.data.gallery import Gallery
 from matl.geometry import compose_query_H_canon, corner_error_px, frobenius_pose_error
-from matl.metrics import pose_metrics
+from matl.inference.options import configure_recognizer
+from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
+from matl.inference.recognizer import Prediction
+from matl.metrics import METRIC_NAMES, pose_metrics
 from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
-from matl.models.inference import Prediction
-from matl.models.options import configure_recognizer
-from matl.models.quantize import apply_quantize_option, datamodule_calibration, quantize_option
-from matl.train import METRIC_NAMES, write_json
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
+from matl.utils.io import write_json
 from matl.utils.sweep import clear_failed, is_multirun, run_sweep_job
 from matl.utils.timing import median_query_ms
 
@@ -64,7 +64,7 @@ class BaselinePrediction(Prediction):
 
 
 class BaselineRecognizer:
-    """Makes a keypoint matcher answer like :class:`matl.models.inference.Recognizer`.
+    """Makes a keypoint matcher answer like :class:`matl.inference.recognizer.Recognizer`.
 
     The matcher indexes the gallery's anchor images once; ``match`` gives the gallery image with
     most RANSAC inliers and ``query_H_anchor``. The pose is ``query_H_anchor @ anchor_H_canon`` of
@@ -341,7 +341,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
         model = build_model(config.model, ckpt, checkpoint_path, datamodule).to(device)
         predict = model.build_recognizer(datamodule.gallery)
     quantize = {"quantize": quantize_option(cfg), "quantize_fallback": None}
-    if quantize["quantize"] != "none":  # quantize=int8, calibrated on training positives (matl/models/quantize.py)
+    if quantize["quantize"] != "none":  # quantize=int8, calibrated on training positives (matl/inference/quantize.py)
         quantize = apply_quantize_option(predict, cfg, lambda: datamodule_calibration(datamodule))
     predict, inference = configure_recognizer(predict, cfg)  # search=exact|faiss, refine=true (docs/speed.md)
 

@@ -14,7 +14,7 @@ Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
 Formats: ``torchscript`` (default; ``torch.jit.load`` in Python or libtorch in C++, no matl or kornia
 needed) or ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``; dynamic batch).
 The query module re-expresses the STN's forward pass with plain torch ops (``grid_sample`` on a
-precomputed grid, the degeneracy guard as ``torch.where``; :class:`matl.models.inference.QueryGraph`)
+precomputed grid, the degeneracy guard as ``torch.where``; :class:`matl.inference.recognizer.QueryGraph`)
 so that tracing records no Python branch; the export is checked against the eager model on every
 export (tolerance ``tolerance``).
 """
@@ -32,8 +32,8 @@ import torch
 from omegaconf import DictConfig
 from torch import nn
 
-from matl.train import write_json
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
+from matl.utils.io import write_json
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +41,12 @@ FORMATS = ("torchscript", "export")
 
 
 def __getattr__(name: str) -> Any:
-    """``QueryNet``: :class:`matl.models.inference.QueryGraph`, the ``s()`` + ``c()`` graph that
+    """``QueryNet``: :class:`matl.inference.recognizer.QueryGraph`, the ``s()`` + ``c()`` graph that
     ``Recognizer`` itself compiles for single queries, so the exported network and the in-process
     fast path are one piece of code. Imported on first use (matl.models loads kornia; a bad option
     of the CLI is reported before that)."""
     if name == "QueryNet":
-        from matl.models.inference import QueryGraph
+        from matl.inference.recognizer import QueryGraph
 
         return QueryGraph
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -106,7 +106,7 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
     """
     if fmt not in FORMATS:
         raise MatlError(f"format={fmt} is invalid: use {' or '.join(FORMATS)}")
-    from matl.models.inference import QueryGraph
+    from matl.inference.recognizer import QueryGraph
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)

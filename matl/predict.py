@@ -55,10 +55,10 @@ from matl.data.image_files import (
     scan_gallery,
 )
 from matl.geometry import anchor_H_canon, transfer_points, warp_image
+from matl.inference.options import configure_recognizer
+from matl.inference.quantize import apply_quantize_option, calibration_images, quantize_option
+from matl.inference.recognizer import Prediction, Recognizer, embed
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
-from matl.models.inference import Prediction, Recognizer, embed
-from matl.models.options import configure_recognizer
-from matl.models.quantize import apply_quantize_option, calibration_images, quantize_option
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
 
@@ -411,7 +411,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     gallery = enrolled.gallery.to(device)
     recognizer = Recognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
                             gallery_features=enrolled.features)
-    # quantize=int8: calibrated on gallery images warped by random homographies (matl/models/quantize.py)
+    # quantize=int8: calibrated on gallery images warped by random homographies (matl/inference/quantize.py)
     quantize = apply_quantize_option(recognizer, cfg, lambda: calibration_images(gallery.images))
     recognizer, inference = configure_recognizer(recognizer, cfg)  # search=exact|faiss, refine=true
     out = Path(cfg.out).expanduser()

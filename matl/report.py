@@ -640,7 +640,7 @@ def build_report(dirs: Sequence[Path], out: Path, fig5: Sequence[Path] | None = 
                       "(11 simple objects / 23 non-planar).", "", *_table2_md(cells2), ""]
         series = fig4_series(groups, setting)
         if series:
-            from matl.figures import Point, plot_fig4
+            from matl.reporting.figures import Point, plot_fig4
 
             name = "fig4.png" if not any(p.name == "fig4.png" for p in files) else f"fig4_{len(files)}.png"
             points = {d: {n: {m: Point(*s) for m in ("rec_acc", "pose_err") if (s := g.stat(m)) is not None}
@@ -651,7 +651,7 @@ def build_report(dirs: Sequence[Path], out: Path, fig5: Sequence[Path] | None = 
     pair = tuple(fig5) if fig5 else (find_fig5_pair(groups) if auto_fig5 else None)
     if pair:
         try:
-            from matl.figures import fig5_panels, plot_fig5
+            from matl.reporting.figures import fig5_panels, plot_fig5
 
             files.append(plot_fig5(fig5_panels(pair[0], pair[1]), out / "fig5.png"))
             lines += ["## Fig. 5: qualitative examples", "", f"Single-anchor checkpoint `{pair[0]}`, MATL checkpoint "
@@ -706,7 +706,7 @@ def write_fig2(path: Path, data: str, plane: str | None, image_size: int, cache_
 
     from matl.data.canonical import load_canonical
     from matl.eval import compose_data_group
-    from matl.figures import appearance_vs_rotation, local_minima, plot_fig2
+    from matl.reporting.figures import appearance_vs_rotation, local_minima, plot_fig2
 
     source = hydra.utils.instantiate(compose_data_group(data).source)
     cache = cache_dir or os.environ.get("MATL_CACHE_DIR") or ".cache/matl"

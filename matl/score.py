@@ -312,7 +312,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                                 float(cfg.query_fill))
     out = Path(cfg.out).expanduser()
     out.mkdir(parents=True, exist_ok=True)
-    from matl.train import write_json
+    from matl.utils.io import write_json
 
     write_json(out / "score.json", summary)
     write_rows(out / "per_query.csv", rows)

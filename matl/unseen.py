@@ -221,7 +221,7 @@ def _check(cfg: DictConfig) -> None:
 def unseen(cfg: DictConfig) -> dict[str, Any]:
     """Run the measurement for a composed ``conf/unseen.yaml``; returns what ``unseen.json`` holds."""
     from matl.render import instantiate_source
-    from matl.train import write_json
+    from matl.utils.io import write_json
 
     _check(cfg)
     ckpt_path = Path(cfg.ckpt).expanduser().resolve()

@@ -35,7 +35,7 @@ from matl.data.canonical import CanonicalSet, cache_path, load_canonical
 from matl.data.image_files import fit_to_model, load_image_file
 from matl.eval import evaluate
 from matl.predict import predict
-from matl.train import train
+from matl.training.fit import train
 from matl.utils.config import SYNTHETIC_CATALOGS
 from matl.utils.errors import MatlError, group_options
 from tests.conftest import TINY, compose_config
@@ -457,7 +457,7 @@ CASES = [
     call("checkpoint: its config names os.system for Hydra (refused, never run)", config_exploit("os.system"),
          "asks to build 'os.system'"),
     call("checkpoint: its config names a matl function that writes files (refused)",
-         config_exploit("matl.train.write_json"), "asks to build 'matl.train.write_json'"),
+         config_exploit("matl.utils.io.write_json"), "asks to build 'matl.utils.io.write_json'"),
     call("checkpoint: plain Lightning checkpoint without matl metadata",
          predict_with_checkpoint(plain_lightning_checkpoint), "not written by matl.train"),
     call("checkpoint: trained at 48 px, predict image_size=32",

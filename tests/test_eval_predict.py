@@ -25,10 +25,11 @@ from torch import nn
 from matl.data.image_files import fit_geometry, fit_to_model, load_image_file, pose_in_files
 from matl.eval import DEFAULT_N, DEFAULT_SEED, evaluate
 from matl.geometry import warp_image
-from matl.models.inference import Recognizer
+from matl.inference.recognizer import Recognizer
+from matl.metrics import METRIC_NAMES
 from matl.models.stn import STNOutput
 from matl.predict import enrol_gallery, predict, predict_files
-from matl.train import METRIC_NAMES, train
+from matl.training.fit import train
 from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config
 

@@ -1,6 +1,8 @@
-"""DESIGN §3 metrics."""
+"""Recognition and pose metrics (the binding names of docs/design.md)."""
 
 from matl.metrics.pose import (
+    METRIC_NAMES,
+    POSE_METRICS,
     CornerError,
     PoseAccuracy,
     PoseError,
@@ -8,4 +10,12 @@ from matl.metrics.pose import (
     pose_metrics,
 )
 
-__all__ = ["CornerError", "PoseAccuracy", "PoseError", "RecognitionAccuracy", "pose_metrics"]
+__all__ = [
+    "METRIC_NAMES",
+    "POSE_METRICS",
+    "CornerError",
+    "PoseAccuracy",
+    "PoseError",
+    "RecognitionAccuracy",
+    "pose_metrics",
+]

@@ -103,13 +103,20 @@ class PoseAccuracy(_PerQueryRecords):
         return (correct & (corner < self.threshold)).double().mean()
 
 
+# The binding metric names, in report order; pose_metrics() builds exactly these.
+METRIC_NAMES = ("rec_acc", "pose_err", "corner_err_px", "corner_err_px_median", "pose_acc_5px")
+# The metrics that need an estimated pose (null for recognition-only models).
+POSE_METRICS = tuple(name for name in METRIC_NAMES if name != "rec_acc")
+
+
 def pose_metrics(image_size: int = 100, prefix: str = "") -> MetricCollection:
-    """All DESIGN §3 accuracy metrics, sharing one set of per-query records."""
-    return MetricCollection({
+    """Every accuracy metric of :data:`METRIC_NAMES`, sharing one set of per-query records."""
+    metrics = {
         "rec_acc": RecognitionAccuracy(image_size),
         "pose_err": PoseError(image_size),
         "corner_err_px": CornerError(image_size, "mean"),
         "corner_err_px_median": CornerError(image_size, "median"),
         "pose_acc_5px": PoseAccuracy(image_size),
-    }, prefix=prefix, compute_groups=[["rec_acc", "pose_err", "corner_err_px", "corner_err_px_median",
-                                       "pose_acc_5px"]])
+    }
+    assert tuple(metrics) == METRIC_NAMES
+    return MetricCollection(metrics, prefix=prefix, compute_groups=[list(METRIC_NAMES)])

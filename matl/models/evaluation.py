@@ -1,7 +1,7 @@
 """What every trained matl model shares: evaluation against the gallery, metric logging, optimisers.
 
 A subclass provides ``build_recognizer(gallery)`` (anything that maps a query batch to a
-:class:`~matl.models.inference.Prediction`) and its training step; validation and test then run
+:class:`~matl.inference.recognizer.Prediction`) and its training step; validation and test then run
 the DESIGN §3 metrics the same way for every model, so their numbers are comparable.
 """
 
@@ -15,8 +15,8 @@ import lightning as L
 import torch
 
 from matl.data.gallery import Gallery
+from matl.inference.recognizer import Prediction
 from matl.metrics import pose_metrics
-from matl.models.inference import Prediction
 
 #: val/score = sum of weight x metric over the metrics a model has (a model without pose has NaN pose
 #: metrics; they drop out). Recognition and 5-px pose accuracy count alike: see docs/decisions.md.

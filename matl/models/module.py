@@ -15,10 +15,10 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import warp_image
+from matl.inference.recognizer import Recognizer
 from matl.losses import MultiAnchorAppearanceLoss, appearance_distance
 from matl.models.evaluation import PoseEvaluationModule
 from matl.models.feature import FeatureNet
-from matl.models.inference import Recognizer
 from matl.models.stn import SpatialTransformer
 from matl.utils.errors import NonFiniteLossError
 

@@ -6,7 +6,7 @@ Convention:
     ``s(query)(x) = query(query_H_anchor @ x)``: the query brought into the frame of an anchor.
     DESIGN's ``anchor_H_query`` is its inverse; we never need to invert during training.
 
-Inference (``SpatialTransformer.infer``, used by :class:`matl.models.inference.Recognizer`) computes
+Inference (``SpatialTransformer.infer``, used by :class:`matl.inference.recognizer.Recognizer`) computes
 the same function as ``forward`` up to float rounding, for a batch of one query at a few
 milliseconds: the warp is ``grid_sample`` on a cached normalised grid (:func:`warp_by_normalised`)
 instead of kornia's general ``homography_warp`` (whose per-call set-up cost more than the sampling),

@@ -65,7 +65,7 @@ def one_line(error: BaseException) -> str:
 
 def write_failed(output_dir: Path, error: BaseException) -> Path:
     """``<output_dir>/failed.json``: the one-line reason, the exception type and the job's overrides."""
-    from matl.train import write_json  # the atomic writer shared by metrics.json and eval.json
+    from matl.utils.io import write_json
 
     output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / FAILED_FILE

@@ -1,0 +1,354 @@
+"""Test-time pose refinement (beyond the paper): direct photometric alignment of the query to its anchor.
+
+The STN regresses ``query_H_anchor`` in one or two feed-forward steps; its error is bounded by
+what a small regressor can learn. Given the anchor the recognizer selected, the pose can be
+polished by minimising the appearance loss itself, the classic Lucas-Kanade way:
+
+* **Parametrisation.** Forward compositional: ``H = H_stn @ (I + D(p))`` in normalised coordinates
+  (``align_corners=True``, so one matrix is valid at every pyramid level), ``p`` the 8 entries of a
+  homography update about the identity. The STN estimate is the starting point ``p = 0``.
+* **Objective.** ``mean rho(r)`` over all pixels of the anchor frame (luminance by default, or the
+  3 channels), with ``r = (Iq(H x) - gain * Ia(x) - bias * F(x)) / scale``: ``F`` is the anchor's
+  foreground (pixels > 0; backgrounds are 0 by convention), ``gain`` and ``bias`` per channel are
+  the least-squares fit over ``F`` at the current pose (variable projection), so a gain / bias
+  change of the query's lighting costs nothing, and ``scale`` is the std of the query's
+  foreground, so ``delta`` is unitless. Background pixels stay in the loss (0 on both sides at the
+  right pose): they keep the object's outline in the objective. ``rho`` is ``l2``, ``huber`` or
+  ``cauchy`` (robust to specular spots, occluders, segmentation errors).
+* **Solver.** Gauss-Newton with Levenberg-Marquardt damping, re-weighted (IRLS) for the robust
+  ``rho``: the Jacobian is the warped query's image gradient times the homography's derivative
+  at the identity. A step is accepted per query only if the loss drops, else the damping grows,
+  so the loss at each level never increases.
+* **Coarse to fine.** A Gaussian pyramid (``levels``), coarsest first: coarse levels widen the
+  basin of convergence, the finest level gives sub-pixel accuracy.
+* **Divergence guard.** At full resolution the final loss is compared with the STN estimate's; a
+  query whose loss did not decrease, or whose refined matrix is non-finite or ill-conditioned,
+  keeps the STN estimate. Refinement therefore never makes the objective worse.
+
+Everything is batched over queries. ``RefinedRecognizer`` wraps any recognizer (MATL, the STN
+classifier, a keypoint baseline) and refines the pose against the anchor it selected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry.transform import pyrdown
+
+from matl.geometry import compose_query_H_canon, normalised_to_pixel, pixel_to_normalised
+from matl.inference.recognizer import Prediction
+from matl.models.stn import degenerate_homographies
+
+__all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
+
+LOSSES = ("l2", "huber", "cauchy")
+_FOREGROUND = 1e-3  # a pixel brighter than this in any channel is foreground (backgrounds are exactly 0)
+
+
+@dataclass
+class RefineResult:
+    """Refined poses of a batch.
+
+    Attributes:
+        query_H_anchor: ``(B, 3, 3)`` float64 pixel homographies (the input where not accepted).
+        loss_before: ``(B,)`` objective at the input pose (full resolution).
+        loss_after: ``(B,)`` objective at the returned pose (``<= loss_before``).
+        accepted: ``(B,)`` bool, the refined pose was kept.
+    """
+
+    query_H_anchor: torch.Tensor
+    loss_before: torch.Tensor
+    loss_after: torch.Tensor
+    accepted: torch.Tensor
+
+
+def _update_matrix(p: torch.Tensor) -> torch.Tensor:
+    """``I + D(p)``: ``(B, 8) -> (B, 3, 3)``."""
+    full = torch.cat([p, torch.zeros_like(p[:, :1])], dim=1).view(-1, 3, 3)
+    return full + torch.eye(3, dtype=p.dtype, device=p.device)
+
+
+def _grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Homogeneous normalised pixel-centre coordinates ``(h * w, 3)`` of a ``size`` grid, row-major."""
+    h, w = size
+    v, u = torch.meshgrid(torch.linspace(-1, 1, h, dtype=dtype, device=device),
+                          torch.linspace(-1, 1, w, dtype=dtype, device=device), indexing="ij")
+    return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(h * w, dtype=dtype, device=device)], -1)
+
+
+def _sample(images: torch.Tensor, H: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """``images(H @ x)`` for every ``x`` of ``grid`` (what :func:`matl.geometry.sample_by_normalised`
+    computes, without rebuilding the grid at every call): ``(B, C, h, w)``, zeros outside."""
+    B, _, h, w = images.shape
+    points = grid @ H.to(images.dtype).transpose(1, 2)                            # (B, hw, 3)
+    z = points[..., 2:]
+    z = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)  # a point at infinity samples nothing
+    xy = (points[..., :2] / z).view(B, h, w, 2)
+    return F.grid_sample(images, xy, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+def _gradients(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Central differences per pixel ``(B, C, h, w)``, one-sided at the border (same shape)."""
+    padded = F.pad(images, (1, 1, 1, 1), mode="replicate")
+    gx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) * 0.5
+    gy = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]) * 0.5
+    return gx, gy
+
+
+class PhotometricRefiner:
+    """Refines ``query_H_anchor`` against the selected anchor by direct photometric alignment.
+
+    Args:
+        iterations: Gauss-Newton iterations per pyramid level.
+        levels: pyramid levels (1: full resolution only); the coarsest level keeps at least
+            ``min_size`` pixels per side.
+        step: fraction of each Gauss-Newton step taken (1: full step).
+        loss: ``l2``, ``huber`` or ``cauchy`` on the residuals.
+        delta: scale of the robust loss, in units of the query foreground's std (huber: quadratic below it).
+        damping: initial Levenberg-Marquardt damping (relative to the Hessian's diagonal).
+        min_size: smallest pyramid level side, pixels.
+        min_std: floor of the query foreground's std per channel (a flat image is not amplified into
+            noise).
+        max_condition: a refined normalised matrix with a larger condition number is rejected.
+        grayscale: align luminance (ITU-R BT.601) instead of the 3 colour channels: about 2x cheaper
+            per query and as accurate on synthetic_arc; colour only helps where two regions differ in
+            hue but not in brightness.
+        tolerance: a level stops early once no query's update moves an image corner by more than
+            this many pixels (of that level).
+    """
+
+    def __init__(self, iterations: int = 8, levels: int = 3, step: float = 1.0, loss: str = "huber",
+                 delta: float = 0.5, damping: float = 1e-3, min_size: int = 8, min_std: float = 0.02,
+                 max_condition: float = 1e4, tolerance: float = 0.01, grayscale: bool = True) -> None:
+        if int(iterations) < 0:
+            raise ValueError(f"refiner.iterations must be >= 0, got {iterations}")
+        if int(levels) < 1:
+            raise ValueError(f"refiner.levels must be >= 1, got {levels}")
+        if not 0.0 < float(step) <= 2.0:
+            raise ValueError(f"refiner.step must be in (0, 2], got {step}")
+        if loss not in LOSSES:
+            raise ValueError(f"refiner.loss must be one of {', '.join(LOSSES)}, got {loss!r}")
+        if float(delta) <= 0 or float(damping) < 0 or float(min_std) <= 0 or int(min_size) < 4:
+            raise ValueError(f"refiner.delta, min_std must be > 0, damping >= 0 and min_size >= 4; got delta={delta}, "
+                             f"damping={damping}, min_std={min_std}, min_size={min_size}")
+        self.iterations, self.levels, self.step = int(iterations), int(levels), float(step)
+        self.loss, self.delta, self.damping = loss, float(delta), float(damping)
+        self.min_size, self.min_std, self.max_condition = int(min_size), float(min_std), float(max_condition)
+        self.tolerance, self.grayscale = float(tolerance), bool(grayscale)
+
+    # ----------------------------------------------------------------------------------- pieces
+    def _query_scale(self, queries: torch.Tensor) -> torch.Tensor:
+        """Per-channel std ``(B, C, 1, 1)`` of each query's foreground (the residuals' unit), floored."""
+        mask = (queries > _FOREGROUND).any(dim=1, keepdim=True).to(queries.dtype)
+        count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+        mean = (queries * mask).sum(dim=(-2, -1), keepdim=True) / count
+        var = ((queries - mean) ** 2 * mask).sum(dim=(-2, -1), keepdim=True) / count
+        return var.sqrt().clamp_min(self.min_std)
+
+    def _rho_and_weight(self, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Robust loss per residual and its IRLS weight ``rho'(r) / r``."""
+        d = self.delta
+        if self.loss == "l2":
+            return 0.5 * r * r, torch.ones_like(r)
+        a = r.abs()
+        if self.loss == "huber":
+            rho = torch.where(a <= d, 0.5 * r * r, d * (a - 0.5 * d))
+            return rho, torch.where(a <= d, torch.ones_like(r), d / a.clamp_min(1e-12))
+        z = (r / d) ** 2  # cauchy
+        return 0.5 * d * d * torch.log1p(z), 1.0 / (1.0 + z)
+
+    def _pyramid(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """Finest first; ``align_corners=True`` keeps normalised coordinates identical across levels."""
+        out = [images]
+        while len(out) < self.levels and min(out[-1].shape[-2:]) // 2 >= self.min_size:
+            out.append(pyrdown(out[-1], align_corners=True))
+        return out
+
+    @staticmethod
+    def _anchor_level(anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The anchor level and its foreground indicator ``(B, 1, h, w)``."""
+        return anchor, (anchor > _FOREGROUND).any(dim=1, keepdim=True).to(anchor.dtype)
+
+    def _residuals(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
+                   scale: torch.Tensor, grid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Warped query and residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``).
+
+        Lighting model: on the anchor's foreground ``F`` the warped query is ``gain * A + bias`` per
+        channel, background stays 0, so ``r = (Iw - gain * A - bias * F) / scale`` over the whole frame.
+        ``gain`` and ``bias`` are the least-squares fit over ``F`` at this pose (variable projection).
+        The whole frame, background included, keeps the silhouette in the loss: restricted to ``F``,
+        the loss would reward pushing the query's blurred outline out of the mask (a zoom-in bias of
+        about a pixel); and with a model rather than per-image normalisation, background pixels are 0
+        on both sides and do not pull the pose towards matching image statistics.
+        """
+        if grid is None:
+            grid = _grid(tuple(query.shape[-2:]), query.dtype, query.device)
+        warped = _sample(query, H, grid)
+        count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+        a_mean = (anchor * mask).sum(dim=(-2, -1), keepdim=True) / count
+        w_mean = (warped * mask).sum(dim=(-2, -1), keepdim=True) / count
+        a_c = (anchor - a_mean) * mask
+        cov = (a_c * warped).sum(dim=(-2, -1), keepdim=True)
+        var = (a_c * a_c).sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
+        gain = cov / var
+        bias = w_mean - gain * a_mean
+        return warped, (warped - gain * anchor - bias * mask) / scale
+
+    def _loss(self, r: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` mean robust loss; non-finite residuals give +inf (never accepted)."""
+        value = self._rho_and_weight(r)[0].mean(dim=(1, 2, 3))
+        return torch.nan_to_num(value, nan=math.inf, posinf=math.inf)
+
+    def _well_conditioned(self, H: torch.Tensor) -> torch.Tensor:
+        return ~degenerate_homographies(H, self.max_condition)
+
+    # ------------------------------------------------------------------------------------- main
+    @torch.no_grad()
+    def __call__(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor) -> RefineResult:
+        """Refine a batch.
+
+        Args:
+            queries: ``(B, 3, H, W)`` query images.
+            anchors: ``(B, 3, H, W)`` the selected anchor of each query.
+            query_H_anchor: ``(B, 3, 3)`` pixel homographies (anchor pixel -> query pixel) to start from.
+        Returns:
+            :class:`RefineResult` with float64 pixel homographies.
+        """
+        if queries.shape != anchors.shape or queries.ndim != 4 or query_H_anchor.shape != (len(queries), 3, 3):
+            raise ValueError(f"queries and anchors must be (B, C, H, W) of one shape and query_H_anchor (B, 3, 3), got "
+                             f"{tuple(queries.shape)}, {tuple(anchors.shape)}, {tuple(query_H_anchor.shape)}")
+        size = (int(queries.shape[-2]), int(queries.shape[-1]))
+        queries, anchors = queries.float(), anchors.float()
+        if self.grayscale and queries.shape[1] == 3:
+            luma = queries.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
+            queries, anchors = (queries * luma).sum(1, keepdim=True), (anchors * luma).sum(1, keepdim=True)
+        H0 = pixel_to_normalised(query_H_anchor.double(), size)
+        scale = self._query_scale(queries)
+        q_pyr = self._pyramid(queries)
+        a_pyr = [self._anchor_level(a) for a in self._pyramid(anchors)]
+
+        H = H0.clone()
+        for level in reversed(range(len(q_pyr))):  # coarsest first
+            H = self._refine_level(q_pyr[level], *a_pyr[level], H, scale)
+
+        anchor, mask = a_pyr[0]
+        loss_before = self._loss(self._residuals(queries, anchor, mask, H0, scale)[1])
+        loss_after = self._loss(self._residuals(queries, anchor, mask, H, scale)[1])
+        accepted = (loss_after < loss_before) & self._well_conditioned(H)
+        loss_after = torch.where(accepted, loss_after, loss_before)
+        H_px = torch.where(accepted[:, None, None], normalised_to_pixel(H, size), query_H_anchor.double())
+        return RefineResult(H_px, loss_before, loss_after, accepted)
+
+    @staticmethod
+    def _jacobian(warped: torch.Tensor, scale: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+        """``d r / d p`` ``(B, C * h * w, 8)``: the warped image's gradient times ``d(I + D(p)) x / dp``.
+
+        With ``(gx, gy)`` the gradient in normalised coordinates at ``(x, y)``, the 8 columns are
+        ``gx x, gx y, gx, gy x, gy y, gy, -(gx x + gy y) x, -(gx x + gy y) y`` (divided by ``scale``).
+        ``gain`` and ``bias`` are held at their fit: by the variable-projection argument (Golub and
+        Pereyra) the gradient is then exact; only the Gauss-Newton Hessian is approximate, and the
+        Levenberg-Marquardt acceptance test makes up for it.
+        """
+        B, C, h, w = warped.shape
+        gx, gy = _gradients(warped / scale)
+        # pixel differences -> derivatives in normalised coordinates (align_corners=True)
+        gx = gx.reshape(B, C, h * w) * ((w - 1) / 2.0)
+        gy = gy.reshape(B, C, h * w) * ((h - 1) / 2.0)
+        x, y = grid[:, 0], grid[:, 1]
+        gxx, gyy = gx * x, gy * y
+        radial = gxx + gyy
+        J = torch.stack([gxx, gx * y, gx, gy * x, gyy, gy, -radial * x, -radial * y], dim=-1)  # (B, C, hw, 8)
+        return J.reshape(B, C * h * w, 8)
+
+    def _refine_level(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
+                      scale: torch.Tensor) -> torch.Tensor:
+        """Levenberg-Marquardt / IRLS iterations at one level; returns the normalised ``H`` ``(B, 3, 3)``."""
+        B, C, h, w = query.shape
+        grid = _grid((h, w), query.dtype, query.device)
+        corners = torch.tensor([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=torch.float64,
+                               device=query.device)
+        half_size = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64, device=query.device)
+        lam = torch.full((B,), self.damping, dtype=torch.float64, device=query.device)
+        eye8 = torch.eye(8, dtype=torch.float64, device=query.device)
+        warped, r = self._residuals(query, anchor, mask, H, scale, grid)
+        loss = self._loss(r)
+        A = g = None
+        for _ in range(self.iterations):
+            if A is None:  # the normal equations change only when some query moved
+                J = self._jacobian(warped, scale, grid)
+                Jw = J * self._rho_and_weight(r)[1].reshape(B, C * h * w, 1)
+                A = (Jw.transpose(1, 2) @ J).double()                              # (B, 8, 8)
+                g = (Jw.transpose(1, 2) @ r.reshape(B, C * h * w, 1)).double()     # (B, 8, 1)
+            damped = A + lam[:, None, None] * torch.diag_embed(torch.diagonal(A, dim1=1, dim2=2)) + 1e-9 * eye8
+            dp = -torch.linalg.solve(damped, g)[..., 0] * self.step
+            dp = torch.nan_to_num(dp, nan=0.0, posinf=0.0, neginf=0.0)
+            update = _update_matrix(dp)
+            candidate = H @ update
+            candidate = candidate / candidate[:, 2:3, 2:3]
+            cand_warped, cand_r = self._residuals(query, anchor, mask, candidate, scale, grid)
+            cand_loss = self._loss(cand_r)
+            better = cand_loss < loss                                              # per query
+            if better.any():
+                H = torch.where(better[:, None, None], candidate, H)
+                warped = torch.where(better[:, None, None, None], cand_warped, warped)
+                r = torch.where(better[:, None, None, None], cand_r, r)
+                loss = torch.where(better, cand_loss, loss)
+                A = g = None
+            lam = torch.where(better, lam * 0.1, lam * 10.0).clamp(1e-9, 1e9)
+            # converged: the update moves no image corner by more than `tolerance` pixels of this level
+            moved = corners @ update.transpose(1, 2)
+            moved = moved[..., :2] / moved[..., 2:]
+            step_px = ((moved - corners[:, :2]) * half_size).norm(dim=-1).amax(dim=-1)
+            if bool((step_px < self.tolerance).all()):
+                break
+        return H
+
+
+class RefinedRecognizer:
+    """A recognizer whose poses are refined against the anchor it selected (``refine=true``).
+
+    Wraps anything returning a :class:`Prediction` with ``query_H_anchor`` and ``gallery_index``
+    (MATL's :class:`~matl.inference.recognizer.Recognizer`, the STN classifier's, a keypoint baseline's);
+    recognition is unchanged, ``query_H_anchor`` and ``query_H_canon`` are replaced. Queries without
+    a match (``gallery_index == -1``) or without a pose keep their prediction.
+
+    Args:
+        recognizer: the wrapped callable; its ``gallery`` attribute is used unless ``gallery`` is given.
+        refiner: the refinement (``PhotometricRefiner``).
+    """
+
+    def __init__(self, recognizer: Callable[[torch.Tensor], Prediction], refiner: PhotometricRefiner,
+                 gallery: Any = None) -> None:
+        self.recognizer, self.refiner = recognizer, refiner
+        self.gallery = gallery if gallery is not None else recognizer.gallery
+        self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
+
+    def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
+        if name in ("recognizer", "refiner", "gallery", "last"):
+            raise AttributeError(name)
+        return getattr(self.recognizer, name)
+
+    @torch.no_grad()
+    def __call__(self, queries: torch.Tensor) -> Prediction:
+        pred = self.recognizer(queries)
+        if pred.query_H_anchor is None:
+            return pred
+        g = self.gallery
+        index = pred.gallery_index.to(g.images.device)
+        found = index >= 0
+        safe = index.clamp_min(0)
+        start = pred.query_H_anchor.double().to(g.images.device)
+        result = self.refiner(queries.to(g.images.device), g.images[safe], start)
+        self.last = result
+        H = torch.where(found[:, None, None], result.query_H_anchor, start)
+        pose = compose_query_H_canon(H, g.anchor_H_canon[safe].double())
+        old = pred.query_H_canon.double().to(pose.device) if pred.query_H_canon is not None else pose
+        pose = torch.where(found[:, None, None], pose, old)
+        device = pred.query_H_anchor.device
+        return dataclasses.replace(pred, query_H_anchor=H.to(device), query_H_canon=pose.to(device))

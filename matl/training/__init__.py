@@ -1,0 +1,1 @@
+"""Fitting a model from a config (the library side of ``python -m matl.train``)."""
