@@ -183,7 +183,7 @@ def _query_images(datamodule: Any, count: int, device: torch.device) -> torch.Te
 def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model: Any, weights: str,
                     device: torch.device) -> dict[str, Any]:
     """``query_ms`` of MATL (exact, refined, faiss) and of the keypoint baseline on the same queries."""
-    from matl.eval import BaselineRecognizer, build_baseline
+    from matl.baselines.recognizer import BaselineRecognizer, build_baseline
     from matl.inference.options import search_name
     from matl.inference.refine import RefinedRecognizer
     from matl.inference.search import ExactSearch

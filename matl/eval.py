@@ -24,19 +24,17 @@ import json
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 import torch
-from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from matl.baselines.recognizer import BaselineRecognizer, build_baseline
 from matl.data.gallery import Gallery
-from matl.geometry import compose_query_H_canon, corner_error_px, frobenius_pose_error
+from matl.geometry import corner_error_px, frobenius_pose_error
 from matl.inference.options import configure_recognizer
 from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
 from matl.inference.recognizer import Prediction
@@ -45,126 +43,17 @@ from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError, exit_on_error, hydra_errors
 from matl.utils.io import write_json
+from matl.utils.runs import compose_data_group, hydra_choice, load_run, resolve_checkpoint
 from matl.utils.sweep import clear_failed, is_multirun, run_sweep_job
 from matl.utils.timing import median_query_ms
 
 log = logging.getLogger(__name__)
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 DEFAULT_N, DEFAULT_SEED = 4, 0  # train.yaml's defaults, used by a baseline evaluated without run=
 TIMING_WARMUP = 5               # as matl.utils.timing.measure_query_ms (train's query_ms)
 
 
-# ------------------------------------------------------------------------------------ baselines
-@dataclass
-class BaselinePrediction(Prediction):
-    """A :class:`Prediction` of a keypoint baseline, plus its RANSAC inlier counts ``(Q,)``."""
-
-    inliers: torch.Tensor
-
-
-class BaselineRecognizer:
-    """Makes a keypoint matcher answer like :class:`matl.inference.recognizer.Recognizer`.
-
-    The matcher indexes the gallery's anchor images once; ``match`` gives the gallery image with
-    most RANSAC inliers and ``query_H_anchor``. The pose is ``query_H_anchor @ anchor_H_canon`` of
-    that gallery image.
-
-    Convention: the matcher's ``query_H_anchor`` maps pixels of the matched *anchor* image (not of
-    the canonical image) to query pixels, the same direction as the STN's, so both compose with
-    the gallery's ``anchor_H_canon`` identically.
-
-    Unmatched queries (index -1) get object -1 (never correct) and identity. ``distance`` is NaN:
-    a matcher has no feature distance (see ``inliers``).
-    """
-
-    def __init__(self, matcher: Any, gallery: Gallery) -> None:
-        self.matcher, self.gallery = matcher, gallery.to("cpu")
-        matcher.index_gallery(self.gallery.images)
-
-    @torch.no_grad()
-    def __call__(self, queries: torch.Tensor) -> BaselinePrediction:
-        """``(Q, 3, S, S)`` -> prediction (on the CPU)."""
-        g = self.gallery
-        result = self.matcher.match(queries.cpu())
-        index = result.gallery_index.long()
-        found = index >= 0
-        safe = index.clamp_min(0)
-        none = torch.full_like(index, -1)
-        query_H_canon = compose_query_H_canon(result.query_H_anchor.double(), g.anchor_H_canon[safe].double())
-        eye = torch.eye(3, dtype=torch.float64).expand_as(query_H_canon)
-        return BaselinePrediction(
-            gallery_index=torch.where(found, index, none),
-            object_index=torch.where(found, g.object_index[safe], none),
-            plane_index=torch.where(found, g.plane_index[safe], none),
-            anchor_index=torch.where(found, g.anchor_index[safe], none),
-            distance=torch.full((len(index),), math.nan, dtype=torch.float64),
-            query_H_anchor=result.query_H_anchor.double(),
-            query_H_canon=torch.where(found[:, None, None], query_H_canon, eye),
-            warped=queries.cpu(),
-            degenerate=torch.zeros(len(index), dtype=torch.bool),
-            inliers=result.inliers.long(),
-        )
-
-
-def build_baseline(node: DictConfig, name: str) -> Any:
-    """Instantiate ``conf/baseline/<name>.yaml``; any failure (missing weights, missing optional
-    package) becomes a one-line :class:`MatlError`."""
-    try:
-        return hydra.utils.instantiate(node)
-    except Exception as error:  # InstantiationException wraps the constructor's own error
-        cause = error.__cause__ or error
-        message = " ".join(str(cause).split()) or type(cause).__name__
-        raise MatlError(f"baseline={name} cannot be built: {message}") from error
-
-
 # ------------------------------------------------------------------------------ configuration
-def _choice(group: str) -> str | None:
-    """The command line's choice for a config group (None outside a Hydra app)."""
-    try:
-        value = HydraConfig.get().runtime.choices.get(group)
-    except ValueError:  # HydraConfig not set: called as a function, e.g. from tests
-        return None
-    return None if value in (None, "null") else str(value)
-
-
-def load_run(run: str | Path) -> tuple[Path, DictConfig]:
-    """A run folder and its saved config (``<run>/.hydra/config.yaml``)."""
-    run_dir = Path(run).expanduser()
-    if not run_dir.is_dir():
-        raise MatlError(f"run={run_dir}: no such folder")
-    path = run_dir / ".hydra" / "config.yaml"
-    if not path.is_file():
-        raise MatlError(f"run={run_dir} has no .hydra/config.yaml: eval needs the run's own saved config "
-                        "(a folder written by python -m matl.train)")
-    saved = OmegaConf.load(path)
-    if not isinstance(saved, DictConfig) or "data" not in saved or "model" not in saved:
-        raise MatlError(f"{path} has no data/model nodes: not a matl.train config")
-    return run_dir, saved
-
-
-def resolve_checkpoint(run_dir: Path | None, ckpt: str) -> Path:
-    """``best`` / ``last`` inside the run's ``checkpoints/``, or a path."""
-    if ckpt in ("best", "last"):
-        if run_dir is None:
-            raise MatlError(f"ckpt={ckpt} needs run=<run dir>")
-        path = run_dir / "checkpoints" / f"{ckpt}.ckpt"
-    else:
-        path = Path(str(ckpt)).expanduser()
-    if not path.is_file():
-        raise MatlError(f"checkpoint {path} not found (ckpt=best|last|<path>)")
-    return path
-
-
-def compose_data_group(name: str) -> DictConfig:
-    """The ``data=<name>`` node composed from ``conf/`` (a baseline with neither run= nor data=)."""
-    overrides = [f"data={name}"]
-    if GlobalHydra.instance().is_initialized():
-        return hydra.compose(config_name="eval", overrides=overrides).data
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return hydra.compose(config_name="eval", overrides=overrides).data
-
-
 def _describe_data(data: DictConfig) -> str:
     """A name for a data node whose group choice is unknown, e.g. ``SyntheticCatalog(arc)``."""
     source = data.get("source")
@@ -182,7 +71,7 @@ def effective_config(cfg: DictConfig) -> tuple[DictConfig, Path | None, str]:
     the swapped node's interpolations resolve against). Without: a config of ``N``, ``seed``,
     ``anchors``, ``paths`` and ``data`` from the eval config (a baseline's queries).
     """
-    data_name = _choice("data")
+    data_name = hydra_choice("data")
     if cfg.get("run"):
         run_dir, saved = load_run(cfg.run)
         for key in ("N", "seed"):
@@ -320,7 +209,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     checkpoint_path = None
     info: dict[str, Any] = {}
     if cfg.get("baseline") is not None:
-        baseline_name = _choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]
+        baseline_name = hydra_choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]
         matcher = build_baseline(cfg.baseline, baseline_name)  # fail fast, before rendering any data
     else:
         checkpoint_path = resolve_checkpoint(run_dir, str(cfg.ckpt))

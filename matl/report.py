@@ -705,8 +705,8 @@ def write_fig2(path: Path, data: str, plane: str | None, image_size: int, cache_
     import torch
 
     from matl.data.canonical import load_canonical
-    from matl.eval import compose_data_group
     from matl.reporting.figures import appearance_vs_rotation, local_minima, plot_fig2
+    from matl.utils.runs import compose_data_group
 
     source = hydra.utils.instantiate(compose_data_group(data).source)
     cache = cache_dir or os.environ.get("MATL_CACHE_DIR") or ".cache/matl"
