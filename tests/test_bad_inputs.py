@@ -33,8 +33,8 @@ from PIL import Image
 
 from matl.data.canonical import CanonicalSet, cache_path, load_canonical
 from matl.data.image_files import fit_to_model, load_image_file
-from matl.eval import evaluate
-from matl.predict import predict
+from matl.evaluation.evaluate import evaluate
+from matl.inference.files import predict
 from matl.training.fit import train
 from matl.utils.config import SYNTHETIC_CATALOGS
 from matl.utils.errors import MatlError, group_options

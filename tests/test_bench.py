@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from matl.bench import REQUIRED_KEYS, run_bench
+from matl.evaluation.speed import REQUIRED_KEYS, run_bench
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 

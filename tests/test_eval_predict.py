@@ -23,12 +23,13 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import nn
 
 from matl.data.image_files import fit_geometry, fit_to_model, load_image_file, pose_in_files
-from matl.eval import DEFAULT_N, DEFAULT_SEED, evaluate
+from matl.evaluation.evaluate import DEFAULT_N, DEFAULT_SEED, evaluate
 from matl.geometry import warp_image
+from matl.inference.files import predict, predict_files
+from matl.inference.gallery import enrol_gallery
 from matl.inference.recognizer import Recognizer
 from matl.metrics import METRIC_NAMES
 from matl.models.stn import STNOutput
-from matl.predict import enrol_gallery, predict, predict_files
 from matl.training.fit import train
 from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config

@@ -19,11 +19,11 @@ import pytest
 from omegaconf import open_dict
 
 from matl.data.canonical import CanonicalSet
+from matl.evaluation.score import read_truth, score, score_files
+from matl.evaluation.score import run as score_run
+from matl.evaluation.unseen import seen_products, unseen, write_gallery, write_queries
 from matl.geometry import HomographySampler
-from matl.score import read_truth, score, score_files
-from matl.score import run as score_run
 from matl.training.fit import train
-from matl.unseen import seen_products, unseen, write_gallery, write_queries
 from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from matl.export import QueryNet, export, export_inference
+from matl.inference.export import QueryNet, export, export_inference
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 from tests.conftest import compose_config

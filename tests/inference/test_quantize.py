@@ -17,7 +17,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from matl.bench import run_bench
+from matl.evaluation.speed import run_bench
 from matl.geometry import HomographySampler, warp_image
 from matl.inference.quantize import (
     QuantizedQueryPath,

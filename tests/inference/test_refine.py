@@ -193,7 +193,7 @@ def test_predict_with_refinement_and_faiss(tmp_path: Path, cache_dir: Path) -> N
     """End to end on image files with an untrained tiny checkpoint: refine=true and search=faiss run
     and say so in the summary; the records stay valid."""
     pytest.importorskip("faiss")
-    from matl.predict import predict
+    from matl.inference.files import predict
     from tests.test_eval_predict import make_files
 
     ckpt = write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir)

@@ -1,0 +1,507 @@
+"""Speed measurements against a reference measured in the same run: ``bench.json`` and a summary table.
+
+The library side of ``python -m matl.bench`` (what each number means: :mod:`matl.bench`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import platform
+import statistics
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+from rich.console import Console
+from rich.table import Table
+
+from matl.utils.config import validate_config
+from matl.utils.errors import MatlError
+from matl.utils.instantiate import instantiate_node
+from matl.utils.io import write_json
+from matl.utils.timing import median_query_ms
+
+# matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
+
+log = logging.getLogger(__name__)
+
+REQUIRED_KEYS = ("train_triplets_per_s", "data_time_fraction", "query_ms", "speedup_vs_sift", "gallery_scaling",
+                 "render_images_per_s")
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _synced(fn: Callable[[torch.Tensor], Any], device: torch.device) -> Callable[[torch.Tensor], Any]:
+    """``fn`` followed by a device sync, so GPU timings include the work and not just its launch."""
+    def call(x: torch.Tensor) -> Any:
+        out = fn(x)
+        _sync(device)
+        return out
+    return call
+
+
+def bench_options(cfg: DictConfig) -> DictConfig:
+    """``cfg.bench``, with ``cfg.bench_quick`` merged over it when ``bench.quick=true``; checked."""
+    options = cfg.bench
+    if options.get("quick"):
+        options = OmegaConf.merge(options, cfg.get("bench_quick") or {})
+    for key in ("train_steps", "queries", "scaling_queries"):
+        if not isinstance(options[key], int) or options[key] < 1:
+            raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 1")
+    for key in ("train_warmup", "query_warmup", "scaling_warmup", "render_objects"):
+        if not isinstance(options[key], int) or options[key] < 0:
+            raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 0")
+    threads = options.get("query_threads")
+    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
+        raise MatlError(f"bench.query_threads={threads} is invalid: use an integer >= 1, or null for the run's threads")
+    anchors = list(options.scaling_anchors)
+    if any(not isinstance(a, int) or a < 1 for a in anchors):
+        raise MatlError(f"bench.scaling_anchors={anchors} is invalid: use a list of integers >= 1")
+    return options
+
+
+def system_info(device: torch.device) -> dict[str, Any]:
+    """What the numbers depend on: hardware, threads, library versions and the load when started."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    info: dict[str, Any] = {
+        "cpu": cpu, "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "torch": torch.__version__,
+        "python": platform.python_version(), "platform": platform.platform(), "device": str(device),
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def _cycle(loader: Any) -> Iterator[dict[str, torch.Tensor]]:
+    while True:
+        yield from loader
+
+
+# -------------------------------------------------------------------------------------- training
+def measure_training(datamodule: Any, model: Any, steps: int, warmup: int, device: torch.device) -> dict[str, Any]:
+    """Training throughput and the share of a step spent making images (``materialize``).
+
+    Each step: collate the next parameter batch, move it to ``device``, ``materialize`` it (timed),
+    ``training_step``, backward and the optimiser step. Medians are reported per step; the
+    throughput and fraction are totals over the timed steps.
+    """
+    model.to(device).train()
+    optimizers = model.configure_optimizers()
+    optimizer = optimizers["optimizer"] if isinstance(optimizers, dict) else optimizers
+    loader = datamodule.train_dataloader()
+    batches = _cycle(loader)
+    step_s, data_s, load_s = [], [], []
+    with warnings.catch_warnings():
+        # training_step logs through self.log, which warns (and does nothing) without a Trainer
+        warnings.filterwarnings("ignore", message=".*self.log.*")
+        warnings.filterwarnings("ignore", message=".*self.trainer.*")
+        for i in range(warmup + steps):
+            _sync(device)
+            t0 = time.perf_counter()
+            params = {k: v.to(device) for k, v in next(batches).items()}
+            _sync(device)
+            t1 = time.perf_counter()
+            batch = datamodule.materialize(params)
+            _sync(device)
+            t2 = time.perf_counter()
+            loss = model.training_step(batch, i)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            _sync(device)
+            t3 = time.perf_counter()
+            if i >= warmup:
+                step_s.append(t3 - t0)
+                data_s.append(t2 - t1)
+                load_s.append(t1 - t0)
+    total = sum(step_s)
+    batch_size = int(datamodule.batch_size)
+    return {
+        "train_triplets_per_s": steps * batch_size / total,
+        "data_time_fraction": sum(data_s) / total,
+        "train": {
+            "steps": steps, "warmup": warmup, "batch_size": batch_size, "image_size": int(datamodule.image_size),
+            "N": int(datamodule.num_anchors), "optimizer": type(optimizer).__name__,
+            "step_ms_median": 1e3 * statistics.median(step_s),
+            "materialize_ms_median": 1e3 * statistics.median(data_s),
+            "loader_ms_median": 1e3 * statistics.median(load_s),
+            "loader_time_fraction": sum(load_s) / total,
+            "includes": "collate + materialize + training_step + backward + optimizer step; not Lightning's loop",
+        },
+    }
+
+
+# --------------------------------------------------------------------------------------- queries
+def _query_images(datamodule: Any, count: int, device: torch.device) -> torch.Tensor:
+    """The first ``count`` test queries ``(count, 3, S, S)`` (materialised like eval's)."""
+    params = {k: v[:count].to(device) for k, v in datamodule.test_set.params.items()}
+    return datamodule.materialize(params)["query"]
+
+
+def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model: Any, weights: str,
+                    device: torch.device) -> dict[str, Any]:
+    """``query_ms`` of MATL (exact, refined, faiss) and of the keypoint baseline on the same queries."""
+    from matl.baselines.recognizer import BaselineRecognizer, build_baseline
+    from matl.inference.options import search_name
+    from matl.inference.refine import RefinedRecognizer
+    from matl.inference.search import ExactSearch
+
+    warmup, count = int(options.query_warmup), int(options.queries)
+    queries = _query_images(datamodule, warmup + count, device)
+    if len(queries) < warmup + count:
+        raise MatlError(f"data.test_queries={len(queries)} is smaller than bench.queries + bench.query_warmup "
+                        f"= {warmup + count}")
+    gallery = datamodule.gallery
+    model.to(device).eval()
+    recognizer = model.build_recognizer(gallery)
+    query_ms: dict[str, float | None] = {}
+    notes: dict[str, str] = {}
+
+    # every method at each thread count (bench.query_threads, or 1..the run's), then at its fastest
+    counts = thread_counts(options)
+    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+    threads = int(min(by_threads, key=lambda n: by_threads[n]))
+    query_ms["matl"] = by_threads[str(threads)]
+    int8 = measure_int8(cfg, datamodule, model, queries, warmup, counts, device)  # quantize=int8 only
+    query_ms.update(int8.pop("query_ms"))
+    if options.refine:
+        refined = RefinedRecognizer(recognizer, instantiate_node(cfg.refiner, "refiner"))
+        query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
+    if options.faiss and hasattr(recognizer, "use_search"):
+        faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
+        try:
+            recognizer.use_search(instantiate_node(faiss_node, "search"))
+            query_ms["matl_faiss"] = median_query_ms(_synced(recognizer, device), queries, warmup, threads)
+        except MatlError as error:  # faiss not installed: reported, not fatal
+            query_ms["matl_faiss"] = None
+            notes["matl_faiss"] = str(error)
+        recognizer.use_search(ExactSearch)
+
+    baseline_name = str(cfg.baseline._target_).rsplit(".", 1)[-1]
+    matcher = build_baseline(cfg.baseline, baseline_name)
+    start = time.perf_counter()
+    baseline = BaselineRecognizer(matcher, gallery)  # indexes the gallery once (not part of query_ms)
+    index_s = time.perf_counter() - start
+    cpu_queries = queries.cpu()
+    sift_by_threads = {}
+    for n in counts:
+        with opencv_threads(n):  # torch's and OpenCV's threads alike
+            sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
+    sift_threads = int(min(sift_by_threads, key=lambda n: sift_by_threads[n]))
+    query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
+
+    timing = {
+        "queries": count, "warmup": warmup, "statistic": "median over single-query calls (batch of 1)",
+        "gallery_anchors": len(gallery), "gallery_planes": int(gallery.plane_index.max()) + 1,
+        "N": gallery.num_anchors, "image_size": gallery.image_size, "weights": weights,
+        "baseline": baseline_name, "baseline_options": {k: v for k, v in OmegaConf.to_container(
+            cfg.baseline, resolve=True).items() if k != "_target_"},
+        "baseline_index_seconds": index_s,
+        "same_queries": "the first queries+warmup test queries of data (seed) for every method",
+        "timed_region": "one recognizer (or baseline) call per query, wall clock: networks, gallery search, pose",
+        "threads": "each method timed at every thread count in matl_ms_by_threads / sift_ms_by_threads (torch "
+                   "intra-op threads; OpenCV's too for SIFT); query_ms holds each method at its fastest",
+        "matl_threads": threads, "sift_threads": sift_threads,
+        "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
+        "matl_path": _query_path(recognizer, queries[:1]),
+        **int8,
+    }
+    if notes:
+        timing["notes"] = notes
+    return {"query_ms": query_ms, "query_timing": timing}
+
+
+def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Tensor, warmup: int,
+                 counts: list[int], device: torch.device) -> dict[str, Any]:
+    """``quantize=int8``: ``query_ms.matl_int8`` (the int8 query path of :mod:`matl.inference.quantize`,
+    calibrated on training positives, its own int8 gallery embeddings) on the same queries, at each thread
+    count like ``matl``, kept at its fastest; empty for ``quantize=none``. The float numbers are unchanged."""
+    from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
+
+    if quantize_option(cfg) == "none":
+        return {"query_ms": {}}
+    recognizer = model.build_recognizer(datamodule.gallery)
+    start = time.perf_counter()
+    applied = apply_quantize_option(recognizer, cfg, lambda: datamodule_calibration(datamodule))
+    build_s = time.perf_counter() - start
+    if applied["quantize"] == "none":
+        return {"query_ms": {"matl_int8": None}, "matl_int8_fallback": applied["quantize_fallback"]}
+    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+    threads = int(min(by_threads, key=lambda n: by_threads[n]))
+    return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "matl_int8_ms_by_threads": by_threads,
+            "matl_int8_threads": threads, "matl_int8_build_s": build_s,
+            "matl_int8_path": "int8 (FX static quantisation, oneDNN; TorchScript, frozen) + float warps, search, pose"}
+
+
+def thread_counts(options: DictConfig) -> list[int]:
+    """The thread counts single queries are timed at: ``[bench.query_threads]``, or 1..the run's (null)."""
+    value = options.get("query_threads")
+    return [int(value)] if value is not None else list(range(1, torch.get_num_threads() + 1))
+
+
+@contextmanager
+def opencv_threads(threads: int) -> Iterator[None]:
+    """``cv2.setNumThreads(threads)`` inside the block (the keypoint baselines run in OpenCV), restored after."""
+    try:
+        import cv2
+    except ImportError:
+        yield
+        return
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(int(threads))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
+
+
+def _query_path(recognizer: Any, query: torch.Tensor) -> str:
+    """Which code answered a single query: the compiled TorchScript graph or the eager networks."""
+    compiled = recognizer._compiled_path(query) if hasattr(recognizer, "_compiled_path") else None
+    if compiled is not None and compiled.failure is None and compiled._graph is not None:
+        return "compiled (TorchScript, frozen, optimize_for_inference)"
+    if compiled is not None and compiled.failure is not None:
+        return f"eager infer (compiled path failed: {compiled.failure})"
+    return "eager infer" if getattr(recognizer, "fast", False) else "eager forward"
+
+
+def _default_faiss_node() -> DictConfig:
+    """``conf/search/faiss.yaml``, for the faiss timing when the run's search is exact."""
+    path = Path(__file__).resolve().parents[1] / "conf" / "search" / "faiss.yaml"
+    node = OmegaConf.load(path)
+    assert isinstance(node, DictConfig)
+    return node
+
+
+# ------------------------------------------------------------------------------- gallery scaling
+def fixed_query_ms(model: Any, recognizer: Any, queries: torch.Tensor, warmup: int, device: torch.device,
+                   threads: int | None = None) -> float:
+    """Median milliseconds of ``c(s(query))`` for one query (the part of a query that does not
+    depend on the gallery size), by the recognizer's own path (:meth:`Recognizer.embed_queries`)."""
+    embed_one = getattr(recognizer, "embed_queries", None)
+    if embed_one is None:  # a recognizer without an embedding path (the STN classifier): its networks
+        def embed_one(q: torch.Tensor) -> torch.Tensor:
+            warped = model.stn(q).warped if getattr(model, "stn", None) is not None else q
+            return model.feature_net(warped)
+    return median_query_ms(_synced(embed_one, device), queries, warmup, threads)
+
+
+def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: float,
+                    device: torch.device, threads: int | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Search latency per gallery size, exact and (when installed) FAISS; see the module docstring."""
+    from matl.inference.options import search_name
+    from matl.inference.search import ExactSearch, FaissSearch, require_faiss
+
+    dim = int(getattr(model.feature_net, "embedding_dim", 0)) or int(
+        model.feature_net(torch.zeros(1, 3, model.image_size, model.image_size, device=device)).shape[1])
+    count, warmup = int(options.scaling_queries), int(options.scaling_warmup)
+    use_faiss, faiss_note = bool(options.faiss), None
+    if use_faiss:
+        try:
+            require_faiss()
+        except MatlError as error:
+            use_faiss, faiss_note = False, str(error)
+    faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
+    faiss_kwargs = {k: v for k, v in OmegaConf.to_container(faiss_node, resolve=True).items()
+                    if not k.startswith("_")}
+    g = torch.Generator().manual_seed(int(cfg.seed))
+    rows = []
+    for anchors in [int(a) for a in options.scaling_anchors]:
+        gallery = torch.nn.functional.normalize(torch.randn(anchors, dim, generator=g), dim=1)
+        truth = torch.randint(anchors, (warmup + count,), generator=g)
+        # a query is its gallery entry moved by noise of norm ~0.3 (typical of a recognised query)
+        noise = torch.randn(warmup + count, dim, generator=g) * (0.3 / math.sqrt(dim))
+        queries = torch.nn.functional.normalize(gallery[truth] + noise, dim=1)
+        gallery, queries = gallery.to(device), queries.to(device)
+        exact = ExactSearch(gallery)
+        search_ms = median_query_ms(_synced(lambda q, e=exact: e.search(q), device), queries, warmup, threads)
+        exact_index = exact.search(queries)[0]
+        row: dict[str, Any] = {"anchors": anchors, "query_ms": fixed_ms + search_ms, "search_ms": search_ms}
+        if use_faiss:
+            start = time.perf_counter()
+            index = FaissSearch(gallery, **faiss_kwargs)
+            row["faiss_build_s"] = time.perf_counter() - start
+            row["faiss_search_ms"] = median_query_ms(lambda q, i=index: i.search(q), queries, warmup, threads)
+            row["faiss_query_ms"] = fixed_ms + row["faiss_search_ms"]
+            row["faiss_recall_at_1"] = float((index.search(queries)[0] == exact_index).float().mean())
+        rows.append(row)
+    info = {
+        "embedding_dim": dim, "queries": count, "warmup": warmup, "fixed_query_ms": fixed_ms, "threads": threads,
+        "method": "query_ms = fixed_query_ms (STN + feature net of one real query, measured once) + search_ms "
+                  "(median single-query search over random unit embeddings of the model's dimension; queries "
+                  "are gallery entries plus noise of norm ~0.3)",
+        "faiss": ({k: v for k, v in faiss_kwargs.items()} if use_faiss else None),
+    }
+    if faiss_note:
+        info["faiss_note"] = faiss_note
+    return rows, info
+
+
+# --------------------------------------------------------------------------------------- render
+def measure_render(cfg: DictConfig, options: DictConfig) -> tuple[float | None, dict[str, Any]]:
+    """Canonical renders per second of ``data.source`` (None with a reason when it cannot render)."""
+    if not options.render:
+        return None, {"skipped": "bench.render=false"}
+    try:
+        from matl.data.views import render_images_per_s
+    except ImportError:
+        try:
+            from matl.data.catalog.rendering import render_images_per_s  # type: ignore[no-redef]
+        except ImportError:
+            return None, {"skipped": "no render_images_per_s in this version of matl"}
+    source = instantiate_node(cfg.data.source, "data.source")
+    if not hasattr(source, "models"):
+        return None, {"skipped": f"{type(source).__name__} has no meshes to render (photographed canonical images)"}
+    try:
+        result = render_images_per_s(source, int(cfg.data.image_size), "canonical", max(1, int(options.render_objects)))
+    except Exception as error:  # no OpenGL (EGL / OSMesa) on this machine: the other numbers still count
+        return None, {"skipped": f"rendering failed: {' '.join(str(error).split()) or type(error).__name__}"}
+    details = {k: float(v) for k, v in result.items()}
+    details.update(kind="canonical", objects=max(1, int(options.render_objects)), image_size=int(cfg.data.image_size),
+                   source=type(source).__name__)
+    return float(result["images_per_s"]), details
+
+
+# -------------------------------------------------------------------------------------------- main
+def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
+    """The checkpoint's model when ``ckpt=`` is set (and the data's size and N set to its own)."""
+    ckpt_path = cfg.get("ckpt")
+    if not ckpt_path:
+        return None, "untrained: the default config's model, randomly initialised (speed does not depend on weights)"
+    from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
+
+    ckpt = load_checkpoint(ckpt_path)
+    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
+    config = ckpt.get("matl_config")
+    if not isinstance(config, dict) or "model" not in config:
+        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train")
+    with open_dict(cfg):
+        cfg.data.image_size = size  # the gallery and queries must be the checkpoint's size
+        cfg.N = num_anchors
+    return build_model(config["model"], ckpt, ckpt_path), f"checkpoint {ckpt_path}"
+
+
+def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]:
+    """Run every measurement of ``cfg`` (see the module docstring); write and return ``bench.json``."""
+    validate_config(cfg)
+    options = bench_options(cfg)  # before any heavy import
+    if str(cfg.get("quantize") or "none") not in ("none", "int8"):
+        raise MatlError(f"quantize={cfg.get('quantize')} is invalid: use none or int8")
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    device = torch.device(str(cfg.device) if cfg.device != "auto" else "cuda" if torch.cuda.is_available() else "cpu")
+    out_dir = Path(cfg.paths.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+
+    query_model, weights = load_model(cfg)
+    datamodule = instantiate_node(cfg.data, "data")
+    datamodule.setup("fit")
+    train_model = instantiate_node(cfg.model, "model")
+    results: dict[str, Any] = {"quick": bool(options.quick), "system": system_info(device)}
+
+    log.info("bench: training steps")
+    results.update(measure_training(datamodule, train_model, int(options.train_steps), int(options.train_warmup),
+                                    device))
+    model = query_model if query_model is not None else train_model
+    log.info("bench: query_ms")
+    results.update(measure_queries(cfg, options, datamodule, model, weights, device))
+    q = results["query_ms"]
+    results["speedup_vs_sift"] = q["sift_ransac"] / q["matl"] if q.get("sift_ransac") and q.get("matl") else None
+    if "matl_int8" in q:  # quantize=int8: an extra entry, next to the float numbers
+        results["speedup_int8_vs_sift"] = (q["sift_ransac"] / q["matl_int8"] if q.get("sift_ransac")
+                                           and q.get("matl_int8") else None)
+    results["refine_added_ms"] = q["matl_refine"] - q["matl"] if q.get("matl_refine") is not None else None
+
+    log.info("bench: gallery scaling")
+    queries = _query_images(datamodule, int(options.query_warmup) + int(options.queries), device)
+    with torch.no_grad():
+        model.eval()
+        threads = results["query_timing"]["matl_threads"]  # MATL's fastest thread count, as query_ms.matl
+        fixed_ms = fixed_query_ms(model, model.build_recognizer(datamodule.gallery), queries,
+                                  int(options.query_warmup), device, threads)
+    results["gallery_scaling"], results["gallery_scaling_info"] = measure_scaling(cfg, options, model, fixed_ms, device,
+                                                                                  threads)
+
+    log.info("bench: rendering")
+    results["render_images_per_s"], results["render"] = measure_render(cfg, options)
+    results["config"] = {"bench": OmegaConf.to_container(options, resolve=True), "data": _data_name(cfg),
+                         "image_size": int(cfg.data.image_size), "N": int(cfg.N), "seed": int(cfg.seed),
+                         "ckpt": cfg.get("ckpt"), "quantize": cfg.get("quantize", "none")}
+    write_json(out_dir / "bench.json", results)
+    print_summary(results, console or Console())
+    return results
+
+
+def _data_name(cfg: DictConfig) -> str:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().runtime.choices.get("data"))
+    except ValueError:  # called as a function (tests)
+        source = cfg.data.get("source")
+        return str(source.get("catalog")) if source is not None and source.get("catalog") else "?"
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:,.{digits}f}"
+    return str(value)
+
+
+def print_summary(results: dict[str, Any], console: Console) -> None:
+    """Two rich tables: the headline numbers and the gallery scaling."""
+    q, t = results["query_ms"], results["query_timing"]
+    table = Table(title=f"matl.bench{' (quick: smoke run, not a measurement)' if results['quick'] else ''}")
+    table.add_column("measure")
+    table.add_column("value", justify="right")
+    table.add_column("note")
+    train = results["train"]
+    table.add_row("train_triplets_per_s", _fmt(results["train_triplets_per_s"], 1),
+                  f"batch {train['batch_size']}, {train['image_size']} px, N={train['N']}")
+    table.add_row("data_time_fraction", _fmt(results["data_time_fraction"], 3), "share of a step in materialize")
+    table.add_row("query_ms.matl", _fmt(q.get("matl")),
+                  f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}; {t['matl_threads']} thread(s)")
+    if "matl_refine" in q:
+        table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")), f"+{_fmt(results.get('refine_added_ms'))} ms")
+    if "matl_faiss" in q:
+        table.add_row("query_ms.matl_faiss", _fmt(q.get("matl_faiss")), t.get("notes", {}).get("matl_faiss", ""))
+    table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
+                  f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
+    table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
+    if "matl_int8" in q:
+        table.add_row("query_ms.matl_int8", _fmt(q.get("matl_int8")),
+                      t.get("matl_int8_fallback") or f"quantize=int8; {t.get('matl_int8_threads')} thread(s)")
+        table.add_row("speedup_int8_vs_sift", _fmt(results.get("speedup_int8_vs_sift"), 1), "sift_ransac / matl_int8")
+    table.add_row("render_images_per_s", _fmt(results["render_images_per_s"], 1),
+                  results["render"].get("skipped", f"{results['render'].get('objects')} objects, canonical"))
+    console.print(table)
+    fixed = _fmt(results["gallery_scaling_info"]["fixed_query_ms"])
+    scaling = Table(title=f"gallery scaling (fixed c(s(q)) {fixed} ms + search on random embeddings)")
+    for name in ("anchors", "query_ms", "search_ms", "faiss_query_ms", "faiss_recall_at_1", "faiss_build_s"):
+        scaling.add_column(name, justify="right")
+    for row in results["gallery_scaling"]:
+        scaling.add_row(f"{row['anchors']:,}", _fmt(row["query_ms"]), _fmt(row["search_ms"], 3),
+                        _fmt(row.get("faiss_query_ms")), _fmt(row.get("faiss_recall_at_1"), 3),
+                        _fmt(row.get("faiss_build_s")))
+    console.print(scaling)
