@@ -90,6 +90,19 @@ def check_resume_checkpoint(path: str | Path, cfg: DictConfig, model: Any) -> No
                         f"missing {missing}, unexpected {extra}, other shapes {shapes}")
 
 
+def log_lightning_once() -> None:
+    """Print each Lightning log line once.
+
+    ``import lightning`` gives its package logger a console handler of its own, yet the logger also
+    propagates to the root logger that Hydra configured (console and ``<run>/<task>.log``), so every
+    Lightning line was printed twice. When the root has handlers, Lightning's own are dropped.
+    """
+    if logging.getLogger().hasHandlers():
+        lightning_logger = logging.getLogger("lightning")
+        for handler in list(lightning_logger.handlers):
+            lightning_logger.removeHandler(handler)
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit, test the best checkpoint, write ``metrics.json``; returns the test metrics."""
     validate_config(cfg)  # before any heavy import, data or model: a config mistake costs a second
@@ -100,6 +113,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
     import lightning as L
     import torch
+
+    log_lightning_once()
 
     from matl.utils.timing import measure_query_ms
 
