@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Every method of Table 1 (and beyond) evaluated by matl.eval on the SAME test queries, then the
-# methods table of matl.report (README "Methods on the same queries").
+# methods table of matl.report (docs/results.md, "Every method on the same test queries").
 #
 #   scripts/compare_methods.sh OUT RUN_N4 [RUN_N1 RUN_TL RUN_STN ...]
 #

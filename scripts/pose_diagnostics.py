@@ -1,7 +1,7 @@
 """Where a pose error comes from (docs/decisions.md, "The virtual camera of the random homographies").
 
     python scripts/pose_diagnostics.py floor [--focal 1 1.5 2 2.5 3 4] [--samples 2000]
-    python scripts/pose_diagnostics.py residuals <eval or train run>/per_query.csv
+    python scripts/pose_diagnostics.py residuals <eval run>/per_query.csv
 
 ``floor``: for random homographies of the default ranges at each focal length, the image-corner
 error of the best affine fit (least squares on the four mapped image corners): what an estimator
