@@ -1,11 +1,11 @@
 """The paper's figures as PNG files, for ``matl.report``: Fig. 2, Fig. 4 and Fig. 5.
 
-* **Fig. 2** (:func:`appearance_vs_rotation`, :func:`plot_fig2`): the appearance loss ``L^a`` (Eq. 1,
-  the mean L1 of :func:`matl.losses.appearance_distance`) between a canonical image and the same
-  image rotated in-plane about its centre by -180..180 degrees. Computed directly from a catalog's
-  canonical image, no training: the global minimum is at 0 and, for the box-like silhouettes of
-  products, poor local minima sit at +-180 degrees (and +-90 for square ones), which is what traps
-  a single-anchor STN (Sec. 3.2).
+* **Fig. 2** (:func:`appearance_vs_rotation`, :func:`plot_fig2`; :func:`write_fig2` from a catalog):
+  the appearance loss ``L^a`` (Eq. 1, the mean L1 of :func:`matl.losses.appearance_distance`)
+  between a canonical image and the same image rotated in-plane about its centre by -180..180
+  degrees. Computed directly from a catalog's canonical image, no training: the global minimum is
+  at 0 and, for the box-like silhouettes of products, poor local minima sit at +-180 degrees (and
+  +-90 for square ones), which is what traps a single-anchor STN (Sec. 3.2).
 * **Fig. 4** (:func:`plot_fig4`): ``rec_acc`` and ``pose_err`` against the number of anchors N,
   mean +- std over seeds, one column per dataset (the paper's (a)-(f)).
 * **Fig. 5** (:func:`fig5_panels`, :func:`plot_fig5`): test queries, the query warped by the
@@ -17,6 +17,7 @@ Matplotlib runs with the Agg backend (files only, no display).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,8 @@ import torch
 
 from matl.geometry import centre_rotation, warp_image
 from matl.losses import appearance_distance
+from matl.utils.errors import MatlError
+from matl.utils.io import write_csv
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -51,7 +54,7 @@ def appearance_vs_rotation(image: torch.Tensor, angles_deg: torch.Tensor | Seque
                            levels: int = 1) -> torch.Tensor:
     """``L^a(I, R_theta I)`` for each angle: ``image`` ``(3, S, S)`` in [0, 1] -> ``(len(angles),)``.
 
-    ``R_theta`` rotates about the image centre (DESIGN §2's centre, as the fixed anchors do);
+    ``R_theta`` rotates about the image centre (the centre of docs/design.md, as the fixed anchors do);
     ``levels=1`` is the paper's loss, more levels the CPU default's pyramid.
     """
     if image.ndim != 3 or image.shape[0] != 3:
@@ -100,6 +103,48 @@ def plot_fig2(angles: Sequence[float], values: Sequence[float], path: Path, titl
         inset.set_axis_off()
     _save(fig, path)
     return path
+
+
+def write_fig2(path: Path, data: str, plane: str | None, image_size: int, cache_dir: str | None) -> tuple[Path, str]:
+    """Fig. 2 from the ``data=<data>`` catalog's canonical image of ``plane`` (index or ``object/plane``;
+    default: the first plane of the first planar object, the paper's "book"), its curve beside it as
+    ``<path>.csv``; returns the PNG's path and the report's caption."""
+    import hydra
+
+    from matl.data.canonical import load_canonical
+    from matl.utils.runs import compose_data_group
+
+    source = hydra.utils.instantiate(compose_data_group(data).source)
+    cache = cache_dir or os.environ.get("MATL_CACHE_DIR") or ".cache/matl"
+    canonical = load_canonical(source, image_size, cache)
+    index = pick_plane(canonical, plane)
+    image = torch.from_numpy(canonical.images[index]).permute(2, 0, 1).float().div(255.0)
+    angles = torch.arange(-180.0, 180.0 + 1e-9, 2.0, dtype=torch.float64)
+    values = appearance_vs_rotation(image, angles)
+    label = canonical.plane_label(index)
+    plot_fig2(angles.tolist(), values.tolist(), path, f"{data}: {label} ({image_size} px)", image)
+    write_csv(path.with_suffix(".csv"), [{"rotation_deg": f"{a:.1f}", "appearance_loss": f"{v:.6f}"}
+                                         for a, v in zip(angles.tolist(), values.tolist(), strict=True)])
+    minima = ", ".join(f"{a:+.0f}° ({v:.4f})" for a, v in local_minima(angles.tolist(), values.tolist()))
+    return path, (f"`{label}` of `{data}` at {image_size} px, rotated about its centre; L^a = mean L1 "
+                  f"(Eq. 1). Local minima: {minima}. Data: `fig2.csv`.")
+
+
+def pick_plane(canonical: Any, plane: str | None) -> int:
+    """A plane index from ``plane`` (an index, or ``object/plane``), default the first planar object's first plane."""
+    if plane is None:
+        for index in range(canonical.num_planes):
+            if canonical.object_shapes[int(canonical.plane_object[index])] == "planar":
+                return index
+        return 0
+    if plane.isdigit():
+        if int(plane) >= canonical.num_planes:
+            raise MatlError(f"--fig2-plane {plane}: the catalog has {canonical.num_planes} planes")
+        return int(plane)
+    labels = [canonical.plane_label(i) for i in range(canonical.num_planes)]
+    if plane not in labels:
+        raise MatlError(f"--fig2-plane {plane!r} is not a plane of the catalog (e.g. {labels[0]!r})")
+    return labels.index(plane)
 
 
 # ------------------------------------------------------------------------------------------ Fig. 4
@@ -155,8 +200,6 @@ def _check_data_targets(node: Any, path: str) -> None:
     if isinstance(node, Mapping):
         target = node.get("_target_")
         if target is not None and not str(target).startswith("matl."):
-            from matl.utils.errors import MatlError
-
             raise MatlError(f"checkpoint {path}: data config names {target!r}; only matl.* classes are instantiated")
         for value in node.values():
             _check_data_targets(value, path)
@@ -183,7 +226,6 @@ def fig5_panels(single_ckpt: str | Path, matl_ckpt: str | Path, rows: int = 3, p
     from omegaconf import OmegaConf
 
     from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
-    from matl.utils.errors import MatlError
 
     ckpts = [load_checkpoint(single_ckpt), load_checkpoint(matl_ckpt)]
     sizes = [checkpoint_info(c, p)[0] for c, p in zip(ckpts, (single_ckpt, matl_ckpt), strict=True)]
