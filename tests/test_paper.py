@@ -1,19 +1,28 @@
-"""The paper's experiments as configs: every row x scale composes to what the paper describes, the
-scale presets and launchers compose, and nothing is submitted or trained here (composition only)."""
+"""The paper's vocabulary (matl.paper) against the configs: every row x scale composes to exactly its settings
+in matl/paper.py and is recognised as that row; the scale presets, sweeps and launchers compose. Nothing
+is submitted or trained here (composition only)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import hydra
 import pytest
+from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from matl import paper
+from matl.reporting.configs import dataset_name
+from matl.reporting.rows import paper_settings
 from tests.conftest import CONF_DIR, compose_config
 
-TRAINED_ROWS = [f"table1_{r}" for r in "abcfghij"] + [f"table2_{r}" for r in "abcd"]
-PRESETS = [f"{s}_{d}" for s in ("paper", "cpu") for d in ("arc", "ycb", "apc")]
+TRAINED_ROWS = [name for name, row in paper.ROWS.items() if row.command == "train"]
+EVALUATED_ROWS = [name for name, row in paper.ROWS.items() if row.command == "eval"]
+# row (f) at a scale on a dataset: experiment=<scale>_<data group>
+PRESETS = [f"{s}_synthetic_{c}" for s in ("paper", "cpu") for c in ("arc", "ycb", "apc")]
 SCALES = [None, "cpu", "paper", "smoke"]
 
 
@@ -21,53 +30,82 @@ def _short(target: str) -> str:
     return target.rsplit(".", 1)[-1]
 
 
-def _summary(cfg) -> dict:
-    """The settings that distinguish the paper's rows."""
-    model = cfg.model
-    return {
-        "model": _short(model._target_), "N": cfg.N, "lam": cfg.lam,
-        "stn": model.get("stn") is not None, "loss": _short(cfg.loss.fn._target_), "M": cfg.loss.num_negatives,
-        "anchors": _short(cfg.anchors._target_), "negative": model.get("stn_on_negative"),
-        "catalog": cfg.data.source.get("catalog"), "subset": cfg.data.source.get("subset"),
-    }
-
-
-EXPECTED = {
-    "table1_a": dict(model="MATLModule", N=1, lam=10.0, stn=True, loss="TripletLoss", anchors="FixedAnchors",
-                     negative=True),
-    "table1_b": dict(model="MATLModule", N=1, stn=False, loss="TripletLoss"),
-    "table1_c": dict(model="STNClassifierModule", N=4, stn=True),
-    "table1_f": dict(model="MATLModule", N=4, lam=10.0, stn=True, loss="TripletLoss", anchors="FixedAnchors",
-                     negative=True),
-    "table1_g": dict(model="MATLModule", N=4, lam=0.0, stn=True, loss="TripletLoss", anchors="FixedAnchors"),
-    "table1_h": dict(model="MATLModule", N=4, lam=10.0, anchors="RandomAnchors", negative=True),
-    "table1_i": dict(model="MATLModule", N=4, lam=10.0, anchors="FixedAnchors", negative=False),
-    "table1_j": dict(model="MATLModule", N=4, lam=10.0, loss="NCELoss", M=64, negative=True),
-    "table2_a": dict(N=4, lam=10.0, catalog="ycb_table2", subset="planar"),
-    "table2_b": dict(N=1, lam=10.0, catalog="ycb_table2", subset="planar"),
-    "table2_c": dict(N=4, lam=10.0, catalog="ycb_table2", subset="nonplanar"),
-    "table2_d": dict(N=1, lam=10.0, catalog="ycb_table2", subset="nonplanar"),
-}
-
-
 def test_every_experiment_file_is_known() -> None:
     files = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
-    assert files == sorted([*TRAINED_ROWS, "table1_d", "table1_e", *PRESETS])
+    assert files == sorted([*paper.ROWS, *PRESETS])
+    assert list(TRAINED_ROWS) == [f"table1_{r}" for r in "abcfghij"] + [f"table2_{r}" for r in "abcd"]
+    assert list(EVALUATED_ROWS) == ["table1_d", "table1_e"]
 
 
 @pytest.mark.parametrize("scale", SCALES)
-@pytest.mark.parametrize("row", TRAINED_ROWS)
-def test_rows_compose_with_every_scale(row: str, scale: str | None, tmp_path: Path) -> None:
-    cfg = compose_config("train", [f"experiment={row}", *([f"scale={scale}"] if scale else [])], tmp_path)
+@pytest.mark.parametrize("name", TRAINED_ROWS)
+def test_rows_compose_to_their_settings_with_every_scale(name: str, scale: str | None, tmp_path: Path) -> None:
+    row = paper.ROWS[name]
+    cfg = compose_config("train", [f"experiment={name}", *([f"scale={scale}"] if scale else [])], tmp_path)
     OmegaConf.resolve(cfg)
-    summary = _summary(cfg)
-    for key, value in EXPECTED[row].items():
-        assert summary[key] == value, (row, scale, key)
-    if row == "table1_j":  # M=64 negatives drawn from the batch need 3 * batch - 2 >= 64
-        assert cfg.loss.fn.tau == 0.07 and 3 * cfg.data.batch_size - 2 >= 64
+    settings = paper_settings(cfg, dataset_name(cfg.data))
+    assert {key: settings[key] for key in row.settings} == dict(row.settings), (name, scale)
+    # ... and the report recognises the composed run as this row (rows (a) and (f) are also Fig. 4 points)
+    expected = (row.key, None, row.key in "af") if row.table == 1 else (None, row.key, False)
+    assert paper.classify(settings) == expected, (name, scale)
+    if name == "table1_j":  # M=64 negatives drawn from the batch need 3 * batch - 2 >= 64
+        assert 3 * cfg.data.batch_size - 2 >= cfg.loss.num_negatives
     # the model really builds (catches keys a scale would add to a model that does not take them)
     model = hydra.utils.instantiate(cfg.model)
     assert model.num_anchors == cfg.N if hasattr(model, "num_anchors") else True
+
+
+@pytest.mark.parametrize("name,matcher", [("table1_d", "SiftRansacMatcher"), ("table1_e", "SuperPointRansacMatcher")])
+def test_baseline_rows_are_evaluations(name: str, matcher: str, tmp_path: Path) -> None:
+    row = paper.ROWS[name]
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("eval", [f"experiment={name}", "data=synthetic_ycb", "seed=3"], return_hydra_config=True)
+    assert (cfg.hydra.runtime.choices.baseline, cfg.N) == (row.settings["baseline"], row.settings["N"])
+    assert _short(cfg.baseline._target_) == matcher and cfg.seed == 3
+    assert paper.classify({"baseline": row.settings["baseline"], "N": cfg.N}) == (row.key, None, False)
+    with pytest.raises(ConfigCompositionException, match="baseline"):
+        compose_config("train", [f"experiment={name}"], tmp_path)
+
+
+def test_rows_are_told_apart_by_their_identity() -> None:
+    for row in paper.ROWS.values():
+        assert set(row.settings) <= set(paper.SETTING_KEYS) and set(row.identity) <= set(row.settings), row.name
+        assert paper.classify(row.settings)[row.table - 1] == row.key  # no earlier row claims its settings
+    f = dict(paper.TABLE1["f"].settings)
+    assert paper.classify({**f, "anchors": "RenderedRandomAnchors"}) == ("h", None, False)
+    assert paper.classify({**f, "num_negatives": 32, "loss": "NCELoss"}) == ("j", None, False)  # any M
+    assert paper.classify({**f, "N": 2}) == (None, None, True)  # a Fig. 4 point only
+    assert paper.classify({**f, "stn_on_negative": 1}) == (None, None, False)  # a flag is a bool, not 1
+    assert paper.classify({**f, "model": "STNClassifierModule"}) == ("c", None, False)  # N=4 is all (c) needs
+    assert paper.classify({"model": "MATLModule", "stn": False, "N": 1, "lam": 0.0}) == ("b", None, False)
+    # on Table 2's data: row (f)'s configuration is Table 2 (or nothing), never Table 1 or Fig. 4
+    assert paper.classify({**f, "N": 1, "data": "synthetic_ycb_table2/nonplanar"}) == (None, "d", False)
+    assert paper.classify({**f, "data": "synthetic_ycb_table2/all"}) == (None, None, False)
+    assert paper.classify({**f, "N": 2, "data": "synthetic_ycb_table2/planar"}) == (None, None, True)
+    assert paper.classify({**f, "lam": 0.0, "data": "synthetic_ycb_table2/planar"}) == ("g", None, False)
+    assert paper.classify({"baseline": "sift", "N": 2}) == (None, None, False)
+
+
+def test_published_numbers() -> None:
+    """Spot checks against the paper's Table 1 and Table 2, and their shape: every column, n/a only for TL's pose."""
+    assert paper.TABLE1["f"].paper == {"ARC": ((0.93, 0.01), (0.66, 0.01)), "YCB": ((0.84, 0.01), (0.60, 0.01)),
+                                       "APC": ((0.93, 0.01), (0.46, 0.01))}
+    assert paper.TABLE1["c"].paper["YCB"] == ((0.82, 0.02), (6.13, 0.01))
+    assert paper.TABLE1["j"].method == "Ours (NCE loss, λ=10, N=4)"
+    assert paper.TABLE2["d"].paper == {"YCB": ((0.64, 0.01), (1.89, 0.03))}
+    assert paper.TABLE2["a"].method == "Ours (planar)"
+    assert list(paper.TABLE1) == list("abcdefghij") and list(paper.TABLE2) == list("abcd")
+    for row in paper.TABLE1.values():
+        assert tuple(row.paper) == paper.DATASETS
+        assert all((pose is None) == (row.key == "b") and rec is not None for rec, pose in row.paper.values())
+    assert set(paper.DATASET_COLUMN.values()) == set(paper.DATASETS)
+
+
+def test_paper_imports_nothing_heavy() -> None:
+    code = "import sys, matl.paper; print(sorted({'torch', 'numpy', 'omegaconf', 'hydra'} & set(sys.modules)))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stderr
 
 
 @pytest.mark.parametrize("model", ["matl", "matl_fast", "tl", "stn_classifier"])
@@ -92,62 +130,53 @@ def test_paper_scale_sets_the_papers_model_behaviour(model: str, tmp_path: Path)
         assert default.model.appearance == "symmetric" and default.model.stn.iterations == 2
 
 
-@pytest.mark.parametrize("data,paper,cpu", [("synthetic_arc", 20000, 4000), ("synthetic_ycb", 25000, 5000),
-                                            ("synthetic_apc", 10000, 2000), ("synthetic_ycb_table2", 25000, 5000)])
-def test_scale_triplets_per_dataset(data: str, paper: int, cpu: int, tmp_path: Path) -> None:
-    assert compose_config("train", ["scale=paper", f"data={data}"], tmp_path).data.train_triplets == paper
-    assert compose_config("train", ["scale=cpu", f"data={data}"], tmp_path).data.train_triplets == cpu
+@pytest.mark.parametrize("data,at_paper,at_cpu", [
+    ("synthetic_arc", 20000, 4000), ("synthetic_ycb", 25000, 5000),
+    ("synthetic_apc", 10000, 2000), ("synthetic_ycb_table2", 25000, 5000)])
+def test_scale_triplets_per_dataset(data: str, at_paper: int, at_cpu: int, tmp_path: Path) -> None:
+    assert compose_config("train", ["scale=paper", f"data={data}"], tmp_path).data.train_triplets == at_paper
+    assert compose_config("train", ["scale=cpu", f"data={data}"], tmp_path).data.train_triplets == at_cpu
 
 
 @pytest.mark.parametrize("preset", PRESETS)
 def test_presets(preset: str, tmp_path: Path) -> None:
-    scale, dataset = preset.split("_")
+    scale, _, data = preset.partition("_")
     cfg = compose_config("train", [f"experiment={preset}"], tmp_path)
     OmegaConf.resolve(cfg)
-    assert cfg.data.source.catalog == dataset and cfg.N == 4 and cfg.lam == 10.0
+    catalog = data.removeprefix("synthetic_")
+    assert cfg.data.source.catalog == catalog and dataset_name(cfg.data) == data
+    assert paper.classify(paper_settings(cfg, data)) == ("f", None, True)
     assert cfg.trainer.max_epochs == (100 if scale == "paper" else 8)
-    triplets = {"arc": 20000, "ycb": 25000, "apc": 10000}[dataset]
+    triplets = {"arc": 20000, "ycb": 25000, "apc": 10000}[catalog]
     assert cfg.data.train_triplets == (triplets if scale == "paper" else triplets // 5)
 
 
 def test_command_line_wins_over_presets(tmp_path: Path) -> None:
-    cfg = compose_config("train", ["experiment=paper_arc", "scale=cpu", "data=synthetic_apc", "trainer=default"],
-                         tmp_path)
+    overrides = ["experiment=paper_synthetic_arc", "scale=cpu", "data=synthetic_apc", "trainer=default"]
+    cfg = compose_config("train", overrides, tmp_path)
     assert cfg.data.source.catalog == "apc" and cfg.data.train_triplets == 2000 and cfg.trainer.max_epochs == 8
     assert cfg.model.appearance == "symmetric"  # scale=cpu keeps the CPU model defaults
     cfg = compose_config("train", ["experiment=table1_f", "N=9"], tmp_path)
     assert cfg.N == 9 and cfg.model.num_anchors == 9
 
 
-@pytest.mark.parametrize("row,baseline", [("table1_d", "SiftRansacMatcher"), ("table1_e", "SuperPointRansacMatcher")])
-def test_baseline_rows_are_evaluations(row: str, baseline: str, tmp_path: Path) -> None:
-    cfg = compose_config("eval", [f"experiment={row}", "data=synthetic_ycb", "seed=3"], tmp_path)
-    assert _short(cfg.baseline._target_) == baseline and cfg.N == 4 and cfg.seed == 3
-    with pytest.raises(ConfigCompositionException, match="baseline"):
-        compose_config("train", [f"experiment={row}"], tmp_path)
-
-
-@pytest.mark.parametrize("sweep,params", [
-    ("table1", {"experiment": "table1_a,table1_b,table1_c,table1_f,table1_g,table1_h,table1_i,table1_j",
-                "seed": "range(0,9)"}),
-    ("table2", {"experiment": "table2_a,table2_b,table2_c,table2_d", "seed": "range(0,9)"}),
-    ("fig4", {"N": "1,2,4,6,9", "seed": "range(0,9)"}),
-])
-def test_sweep_presets(sweep: str, params: dict, tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
+@pytest.mark.parametrize("sweep,rows", [("table1", paper.TABLE1), ("table2", paper.TABLE2), ("fig4", None)])
+def test_sweep_presets(sweep: str, rows: dict[str, paper.Row] | None) -> None:
     from hydra.types import RunMode
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", [f"+sweep={sweep}", "scale=cpu"], return_hydra_config=True)
     assert cfg.hydra.mode == RunMode.MULTIRUN
-    assert dict(cfg.hydra.sweeper.params) == params
-    if sweep == "fig4":
-        assert cfg.hydra.runtime.choices.experiment == "table1_f"
+    seeds = f"range(0,{paper.SEEDS})"
+    if rows is None:  # Fig. 4: row (f) with every N of the figure
+        assert dict(cfg.hydra.sweeper.params) == {"N": ",".join(map(str, paper.FIG4_N)), "seed": seeds}
+        assert cfg.hydra.runtime.choices.experiment == paper.TABLE1["f"].name
+    else:  # every trained row of the table (rows (d) and (e) are evaluations)
+        trained = ",".join(row.name for row in rows.values() if row.command == "train")
+        assert dict(cfg.hydra.sweeper.params) == {"experiment": trained, "seed": seeds}
 
 
 def test_slurm_launcher_composes_without_submitting(tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", ["hydra/launcher=slurm", "trainer=ddp", "trainer.devices=4", "trainer.num_nodes=2",
                                 "hydra.launcher.partition=gpu", "hydra.launcher.timeout_min=90"],
@@ -162,8 +191,6 @@ def test_slurm_launcher_composes_without_submitting(tmp_path: Path) -> None:
 
 
 def test_joblib_launcher_composes(tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"], return_hydra_config=True)
     assert cfg.hydra.launcher.n_jobs == 2 and "joblib" in cfg.hydra.launcher._target_.lower()
