@@ -1,7 +1,8 @@
 """``python -m matl.predict ckpt=<path> gallery=<dir> images=<dir or file> out=<file.jsonl>``.
 
-Recognition and pose for real image files (DESIGN §5), with a gallery enrolled from canonical image
-files, without retraining (paper Sec. 2.1):
+Recognition and pose for real image files (docs/design.md), with a gallery enrolled from canonical
+image files, without retraining (paper Sec. 2.1). A thin user of the Python API
+(:class:`matl.Recognizer`, :mod:`matl.inference.api`):
 
 1. *Enrol*: every ``<gallery>/<object>/<plane>.{png,jpg,jpeg}`` is loaded, resized with its aspect
    kept and centre-padded with 0 to the checkpoint's model size (:mod:`matl.data.image_files`),
@@ -11,16 +12,23 @@ files, without retraining (paper Sec. 2.1):
    so adding, removing or editing a file refreshes it.
 2. *Predict*: query files of any size go through the same resize/pad, in batches; the recognizer
    returns the nearest anchor and the model-frame pose, which is re-expressed in the original pixel
-   coordinates of the gallery file and of the query file.
+   coordinates of the gallery file and of the query file. A query farther than ``threshold`` from
+   every anchor is a product that is not enrolled: ``known`` false, ``object`` and ``plane`` null
+   (``threshold=auto`` calibrates it on the gallery itself; ``threshold=null`` is a closed set).
 
 Output: one JSON line per usable image::
 
-    {"image": "crops/0001.jpg", "object": "cereal", "plane": "front", "anchor": 2, "distance": 0.31,
+    {"image": "crops/0001.jpg", "object": "cereal", "plane": "front", "known": true,
+     "nearest_object": "cereal", "anchor": 2, "distance": 0.31, "score": 0.97,
      "H": [[...], [...], [...]], "gallery_image": "gallery/cereal/front.png"}
 
 ``H`` is ``query_H_canon`` in file pixels (``null`` for models without an STN), so
 ``cv2.warpPerspective(cv2.imread(gallery_image), np.array(H), (query_w, query_h))`` lands on the
-query. Bad files are reported in one line each and skipped.
+query. Bad files are reported in one line each and skipped; when no file at all can be read,
+nothing is written and the command exits 2 naming the files. ``viz=true`` writes ``<stem>.png``
+per query: the plane outlined on the query by ``H``, the query warped into the anchor frame by the
+homography that produced ``H`` (the refined one with ``refine=true``), the anchor; an unknown
+query's outline and verdict are red.
 """
 
 from __future__ import annotations

@@ -25,9 +25,9 @@ from torch import nn
 from matl.data.image_files import fit_geometry, fit_to_model, load_image_file, pose_in_files
 from matl.evaluation.evaluate import DEFAULT_N, DEFAULT_SEED, evaluate
 from matl.geometry import warp_image
+from matl.inference.api import Recognizer
 from matl.inference.files import predict, predict_files
 from matl.inference.gallery import enrol_gallery
-from matl.inference.recognizer import Recognizer
 from matl.metrics import METRIC_NAMES
 from matl.models.stn import STNOutput
 from matl.training.fit import train
@@ -35,7 +35,8 @@ from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config
 
 REPO = Path(__file__).resolve().parents[1]
-RECORD_KEYS = {"image", "object", "plane", "anchor", "distance", "H", "gallery_image"}
+RECORD_KEYS = {"image", "object", "plane", "known", "nearest_object", "anchor", "distance", "score", "H",
+               "gallery_image"}
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -278,7 +279,7 @@ class FixedSTN(nn.Module):
         return STNOutput(images, self.H.expand(B, 3, 3).clone(), torch.zeros(B, dtype=torch.bool))
 
 
-def test_predict_reports_H_in_original_file_pixels(tmp_path: Path) -> None:
+def test_predict_files_reports_H_in_original_file_pixels(tmp_path: Path) -> None:
     """With an STN that outputs the exact model-frame pose, predict's H is the true file-to-file H."""
     size = 48
     gallery_dir, queries_dir, H_true = make_files(tmp_path)
@@ -298,17 +299,20 @@ def test_predict_reports_H_in_original_file_pixels(tmp_path: Path) -> None:
     assert inside.sum() > 100
     assert (warped[0] - query).abs()[:, inside].mean() < 0.02
 
-    recognizer = Recognizer(MeanColour(), FixedSTN(model_H), enrolled.gallery, gallery_features=enrolled.features)
+    model = nn.Module()
+    model.feature_net, model.stn, model.anchor_choice = MeanColour(), FixedSTN(model_H), "feature"
+    recognizer = Recognizer(model, size, 1, "stub", threshold=None, batch_size=2).enrol(gallery_dir, cache=False)
     records: list[dict] = []
+    (queries_dir / "notes.txt").write_text("not an image")
     files = sorted(queries_dir.iterdir())
-    done, skipped = predict_files(recognizer, enrolled, files, size, records.append, batch_size=2,
-                                  show_progress=False)
-    assert (done, skipped) == (3, 0)
+    done, bad = predict_files(recognizer, files, records.append, viz_dir=tmp_path / "viz", show_progress=False)
+    assert (done, bad) == (3, [queries_dir / "notes.txt"])
+    assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["blue_card.png", "green_can.png", "red_box.png"]
     for record in records:
         assert set(record) == RECORD_KEYS
-        assert record["object"] == Path(record["image"]).stem and record["anchor"] == 0
+        assert record["object"] == Path(record["image"]).stem and record["anchor"] == 0 and record["known"]
         np.testing.assert_allclose(np.array(record["H"]), H_true, rtol=1e-9, atol=1e-9)
-        # the DESIGN §5 promise: cv2.warpPerspective of the gallery file with H lands on the query file
+        # the promise of docs/design.md: cv2.warpPerspective of the gallery file with H lands on the query file
         g = cv2.imread(record["gallery_image"]).astype(np.float32)
         q = cv2.imread(record["image"]).astype(np.float32)
         back = cv2.warpPerspective(g, np.array(record["H"]), (QUERY_HW[1], QUERY_HW[0]), flags=cv2.INTER_LINEAR)
@@ -357,7 +361,8 @@ def test_predict_end_to_end_with_tiny_checkpoint(tiny_run: Path, tmp_path: Path,
     for line in lines:
         record = json.loads(line)
         assert set(record) == RECORD_KEYS
-        assert record["object"] in COLOURS and 0 <= record["anchor"] < 4
+        assert record["nearest_object"] in COLOURS and 0 <= record["anchor"] < 4
+        assert record["object"] == (record["nearest_object"] if record["known"] else None)
         assert np.isfinite(record["distance"]) and np.array(record["H"]).shape == (3, 3)
         assert record["H"][2][2] == pytest.approx(1.0)
     assert len(list((tmp_path / "run" / "viz").glob("*.png"))) == 3

@@ -1,7 +1,7 @@
 """Recognition and pose for image files: enrol a gallery folder, predict query files, write JSON lines.
 
 The library side of ``python -m matl.predict`` (the command, its options and output format:
-:mod:`matl.predict`). Gallery enrolment: :mod:`matl.inference.gallery`.
+:mod:`matl.predict`), a thin user of the Python API :class:`matl.inference.api.Recognizer`.
 """
 
 from __future__ import annotations
@@ -12,77 +12,69 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from PIL import Image, ImageDraw
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from torch import nn
 
-from matl.data.image_files import (
-    ImageFileError,
-    fit_to_model,
-    list_image_candidates,
-    load_image_file,
-    pose_in_files,
-)
-from matl.geometry import transfer_points
-from matl.inference.gallery import EnrolledGallery, enrol_gallery, report_skipped
-from matl.inference.options import configure_recognizer
-from matl.inference.quantize import apply_quantize_option, calibration_images, quantize_option
-from matl.inference.recognizer import Prediction, Recognizer
-from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
+from matl.data.image_files import ImageFileError, list_image_candidates, load_image_file
+from matl.geometry import transfer_points, warp_image
+from matl.inference.api import Match, Recognizer
+from matl.inference.gallery import report_skipped
+from matl.inference.quantize import quantize_option
+from matl.inference.recognizer import Prediction
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
+from matl.utils.instantiate import instantiate_node
 
 log = logging.getLogger(__name__)
 
 
-# ---------------------------------------------------------------------------------------- queries
 def _batches(items: Sequence[Path], size: int) -> Iterator[Sequence[Path]]:
     for start in range(0, len(items), size):
         yield items[start:start + size]
 
 
-def prediction_records(pred: Prediction, enrolled: EnrolledGallery, paths: Sequence[Path],
-                       query_H_file: torch.Tensor) -> list[dict[str, Any]]:
-    """JSON records of a batch: the model-frame prediction with ``H`` in file pixels.
-
-    Args:
-        pred: the recognizer's output for ``Q`` queries.
-        paths: ``(Q,)`` query files.
-        query_H_file: ``(Q, 3, 3)`` each query file's ``model_H_file``.
-    """
-    g = enrolled.gallery
-    plane = pred.plane_index.cpu()
-    H = None
-    if pred.query_H_canon is not None:
-        H = pose_in_files(pred.query_H_canon.cpu(), enrolled.canon_H_file[plane], query_H_file)
-    records = []
-    for i, path in enumerate(paths):
-        p = int(plane[i])
-        records.append({
-            "image": str(path),
-            "object": g.object_names[int(pred.object_index[i])],
-            "plane": g.plane_names[p],
-            "anchor": int(pred.anchor_index[i]),
-            "distance": float(pred.distance[i]),
-            "H": None if H is None else H[i].tolist(),
-            "gallery_image": str(enrolled.paths[p]),
-        })
-    return records
+def record_of(path: Path, match: Match) -> dict[str, Any]:
+    """The JSON line of one query file (``object`` / ``plane`` null when the product is not enrolled)."""
+    return {
+        "image": str(path),
+        "object": match.object,
+        "plane": match.plane,
+        "known": match.known,
+        "nearest_object": match.nearest_object,
+        "anchor": match.anchor,
+        "distance": match.distance,
+        "score": None if match.score != match.score else match.score,  # NaN (no calibration) -> null
+        "H": None if match.H is None else match.H.tolist(),
+        "gallery_image": match.gallery_image,
+    }
 
 
-def save_visualisation(path: Path, query: np.ndarray, pred: Prediction, i: int, enrolled: EnrolledGallery,
-                       record: dict[str, Any], panel: int = 256) -> None:
-    """One PNG: the query with the gallery image's outline (its corners mapped by ``H``),
-    ``s(query)`` and the selected anchor.
+def plane_outline(canon_u8: torch.Tensor, canon_H_file: torch.Tensor) -> np.ndarray:
+    """``(K, 2)`` the outline of a plane's foreground in its gallery image's pixels (the whole frame if empty)."""
+    mask = (canon_u8.amax(0) > 0).numpy().astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if contours:
+        points = max(contours, key=cv2.contourArea)[:, 0, :].astype(np.float64)
+    else:
+        s = mask.shape[0] - 1.0
+        points = np.array([[0.0, 0.0], [s, 0.0], [s, s], [0.0, s]])
+    file_H_canon = torch.linalg.inv(canon_H_file.double())
+    return transfer_points(file_H_canon[None], torch.from_numpy(points)[None])[0].numpy()
+
+
+def save_visualisation(path: Path, query: np.ndarray, match: Match, warped: np.ndarray, anchor: np.ndarray,
+                       outline: np.ndarray | None, panel: int = 256) -> None:
+    """One PNG: the query with the product's plane outlined by ``H``; the query warped into the anchor
+    frame by the homography that produced ``H`` (the refined one with ``refine=true``); the anchor.
 
     Args:
         query: ``(h, w, 3)`` float original query image.
-        pred: the batch's prediction; ``i`` the query's row in it.
-        record: the query's JSON record (for ``H`` and labels).
-        panel: height of each panel in pixels.
+        warped, anchor: ``(S, S, 3)`` float model-frame images.
+        outline: ``(K, 2)`` the plane's outline in gallery-image pixels (None: no pose).
     """
     def to_pil(x: np.ndarray) -> Image.Image:
         return Image.fromarray((np.clip(x, 0.0, 1.0) * 255.0).round().astype(np.uint8))
@@ -91,141 +83,166 @@ def save_visualisation(path: Path, query: np.ndarray, pred: Prediction, i: int, 
     scale = panel / h
     left = to_pil(query).resize((max(1, round(w * scale)), panel), Image.Resampling.BILINEAR)
     draw = ImageDraw.Draw(left)
-    if record["H"] is not None:
-        gh, gw = (int(v) for v in enrolled.file_sizes[int(pred.plane_index[i])])
-        corners = torch.tensor([[[0.0, 0.0], [gw - 1.0, 0.0], [gw - 1.0, gh - 1.0], [0.0, gh - 1.0]]],
-                               dtype=torch.float64)
-        mapped = transfer_points(torch.tensor(record["H"], dtype=torch.float64)[None], corners)[0]
+    colour = (0, 255, 0) if match.known else (255, 0, 0)
+    if match.H is not None and outline is not None:
+        mapped = transfer_points(torch.from_numpy(match.H)[None], torch.from_numpy(outline)[None])[0].numpy()
         # file pixel centres -> panel pixel centres (the panel is a plain scaled copy)
         pts = [((float(x) + 0.5) * left.width / w - 0.5, (float(y) + 0.5) * scale - 0.5) for x, y in mapped]
         if all(np.isfinite(v) for pt in pts for v in pt):
-            draw.line([*pts, pts[0]], fill=(0, 255, 0), width=2)
-    warped = to_pil(pred.warped[i].permute(1, 2, 0).cpu().numpy()).resize((panel, panel), Image.Resampling.NEAREST)
-    anchor = enrolled.gallery.images[int(pred.gallery_index[i])]
-    anchor = to_pil(anchor.permute(1, 2, 0).cpu().numpy()).resize((panel, panel), Image.Resampling.NEAREST)
+            draw.line([*pts, pts[0]], fill=colour, width=2)
     gap, title = 8, 18
     canvas = Image.new("RGB", (left.width + 2 * panel + 2 * gap, panel + title), (255, 255, 255))
-    labels = [(left, "query + gallery outline"), (warped, "s(query)"),
-              (anchor, f"anchor {record['anchor']}: {record['object']}/{record['plane']}")]
+    name = f"{match.nearest_object}/{match.nearest_plane}"
+    verdict = f"{name}" if match.known else f"UNKNOWN (nearest {name})"
+    labels = [(left, f"query: {verdict}"), (to_pil(warped).resize((panel, panel), Image.Resampling.NEAREST),
+                                              "query in the anchor frame"),
+              (to_pil(anchor).resize((panel, panel), Image.Resampling.NEAREST), f"anchor {match.anchor}, "
+                                                                               f"d={match.distance:.3f}")]
     x = 0
     text = ImageDraw.Draw(canvas)
     for image, label in labels:
         canvas.paste(image, (x, title))
-        text.text((x + 2, 2), label, fill=(0, 0, 0))
+        text.text((x + 2, 2), label, fill=colour if x == 0 else (0, 0, 0))
         x += image.width + gap
     canvas.save(path)
 
 
-def predict_files(recognizer: Callable[[torch.Tensor], Prediction], enrolled: EnrolledGallery,
-                  files: Sequence[Path], image_size: int, sink: Callable[[dict[str, Any]], None],
-                  batch_size: int = 64, fill: float = 1.0, viz_dir: Path | None = None,
-                  device: torch.device | str = "cpu", show_progress: bool = True) -> tuple[int, int]:
-    """Recognise every file in batches; each usable one gives a record to ``sink``.
+def _viz_name(path: Path, used: set[str]) -> str:
+    """``<stem>.png``, numbered when a recursive listing repeats a stem (never overwrite a picture)."""
+    name, n = f"{path.stem}.png", 1
+    while name in used:
+        n += 1
+        name = f"{path.stem}-{n}.png"
+    used.add(name)
+    return name
+
+
+def _visualise(recognizer: Recognizer, viz_dir: Path, paths: Sequence[Path], originals: list[np.ndarray],
+               matches: list[Match], pred: Prediction, queries: torch.Tensor, used: set[str]) -> None:
+    gallery = recognizer.gallery
+    for i, match in enumerate(matches):
+        g = int(pred.gallery_index[i])
+        anchor = gallery.images[g].permute(1, 2, 0).cpu().numpy()
+        if pred.query_H_anchor is not None:  # the final homography (refined when refine=true)
+            anchor_H_query = torch.linalg.inv(pred.query_H_anchor[i:i + 1].double().cpu())
+            warped = warp_image(queries[i:i + 1].cpu(), anchor_H_query)[0]
+        else:
+            warped = queries[i].cpu()
+        plane = recognizer.plane_at(int(pred.plane_index[i]))
+        outline = plane_outline(plane.canon_u8, plane.canon_H_file) if match.H is not None else None
+        save_visualisation(viz_dir / _viz_name(paths[i], used), originals[i], match,
+                           warped.permute(1, 2, 0).numpy(), anchor, outline)
+
+
+def predict_files(recognizer: Recognizer, files: Sequence[Path], sink: Callable[[dict[str, Any]], None],
+                  viz_dir: Path | None = None, show_progress: bool = True) -> tuple[int, list[Path]]:
+    """Recognise every file in batches of ``recognizer.batch_size``; each usable one gives a record to ``sink``.
 
     Returns:
-        ``(predicted, skipped)`` counts. Unusable files are reported (one line) and skipped.
+        How many files were predicted, and the files that could not be read (each reported in one line).
     """
-    if batch_size < 1:
-        raise MatlError(f"batch_size={batch_size} is invalid: use an integer >= 1")
     if viz_dir is not None:
         viz_dir.mkdir(parents=True, exist_ok=True)
-    done = skipped = 0
-    viz_names: set[str] = set()  # recursive listings can repeat a file name: never overwrite a PNG
+    done, bad = 0, []
+    used: set[str] = set()
     columns = (TextColumn("[bold]predict"), BarColumn(), MofNCompleteColumn(), TextColumn("images"),
                TimeElapsedColumn())
     with Progress(*columns, disable=not show_progress or len(files) < 2) as progress:
         task = progress.add_task("predict", total=len(files))
-        for chunk in _batches(files, batch_size):
-            paths, originals, images, matrices = [], [], [], []
+        for chunk in _batches(files, recognizer.batch_size):
+            paths, originals = [], []
             for path in chunk:
                 try:
-                    original = load_image_file(path)
+                    originals.append(load_image_file(path))
                 except ImageFileError as error:
                     report_skipped(path, str(error).removeprefix(f"{path}: "))
-                    skipped += 1
+                    bad.append(path)
                     continue
-                image, fit = fit_to_model(original, image_size, fill)
                 paths.append(path)
-                originals.append(original if viz_dir is not None else None)
-                images.append(image)
-                matrices.append(fit.model_H_file)
             if paths:
-                pred = recognizer(torch.stack(images).to(device))
-                records = prediction_records(pred, enrolled, paths, torch.stack(matrices))
-                for i, record in enumerate(records):
-                    sink(record)
-                    if viz_dir is not None:
-                        name, n = f"{paths[i].name}.png", 1
-                        while name in viz_names:
-                            n += 1
-                            name = f"{paths[i].name}-{n}.png"
-                        viz_names.add(name)
-                        save_visualisation(viz_dir / name, originals[i], pred, i, enrolled, record)
+                matches, pred, queries = recognizer.predict_details(originals)
+                for path, match in zip(paths, matches, strict=True):
+                    sink(record_of(path, match))
+                if viz_dir is not None:
+                    _visualise(recognizer, viz_dir, paths, originals, matches, pred, queries, used)
                 done += len(paths)
             progress.advance(task, len(chunk))
-    return done, skipped
+    return done, bad
 
 
-# ------------------------------------------------------------------------------------ entry point
-def load_predictor(ckpt_path: str | Path, image_size: int | None = None,
-                   device: str = "cpu") -> tuple[nn.Module, int, int, str]:
-    """The checkpoint's model (eval mode, on ``device``), its image size, N and file sha256.
+def _threshold(cfg: DictConfig) -> float | str | None:
+    value = cfg.get("threshold", "auto")
+    if value is None or value == "auto" or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+        return value
+    raise MatlError(f"threshold={value} is invalid: use auto (calibrated on the gallery), a distance, or null "
+                    "(closed set: every query gets its nearest product)")
 
-    The size is always the checkpoint's; ``image_size`` only asserts it.
-    """
-    ckpt = load_checkpoint(ckpt_path)
-    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
-    if image_size is not None and int(image_size) != size:
-        raise MatlError(f"checkpoint {ckpt_path} was trained at {size} px, not image_size={image_size}: the model "
-                        "size always comes from the checkpoint (drop image_size=)")
-    config = ckpt.get("matl_config")
-    if not isinstance(config, dict) or "model" not in config:
-        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train")
-    data_size = config.get("data", {}).get("image_size")
-    if data_size is not None and int(data_size) != size:
-        raise MatlError(f"checkpoint {ckpt_path} is inconsistent: matl_image_size={size} but its config says "
-                        f"data.image_size={data_size}")
-    model = build_model(config["model"], ckpt, ckpt_path)
-    if not hasattr(model, "feature_net"):
-        raise MatlError(f"checkpoint {ckpt_path} is a {type(model).__name__}, which cannot enrol new objects: "
-                        "predict needs an embedding model (model=matl or model=tl)")
-    return model.to(device), size, num_anchors, file_sha256(ckpt_path)
+
+def recognizer_from_config(cfg: DictConfig) -> Recognizer:
+    """The :class:`Recognizer` a predict config asks for (checkpoint, device, search, refine, quantize, open set)."""
+    refine = cfg.get("refine", False)
+    if refine not in (True, False):
+        raise MatlError(f"refine={refine} is invalid: use true or false")
+    refiner = instantiate_node(cfg.refiner, "refiner") if refine else None
+    search = instantiate_node(cfg.search, "search") if cfg.get("search") is not None else "exact"
+    recognizer = Recognizer.from_checkpoint(
+        cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg), search=search,
+        threshold=_threshold(cfg), open_set_quantile=float(cfg.get("open_set_quantile", 0.99)),
+        gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size))
+    if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:
+        raise MatlError(f"checkpoint {cfg.ckpt} was trained at {recognizer.image_size} px, not "
+                        f"image_size={cfg.image_size}: the model size always comes from the checkpoint "
+                        "(drop image_size=)")
+    return recognizer
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
-    """Run predict for a composed ``conf/predict.yaml``; returns a summary."""
+    """Run predict for a composed ``conf/predict.yaml``; returns a summary.
+
+    Raises:
+        MatlError: a bad option, no usable gallery, or no readable query image at all (then nothing
+            is written; with some readable images the others are reported and the run succeeds).
+    """
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
     quantize_option(cfg)  # quantize=none|int8
+    _threshold(cfg)
     for key in ("ckpt", "gallery", "images", "out"):
         if cfg.get(key) in (None, ""):
             raise MatlError(f"{key}=... is required: python -m matl.predict ckpt=<path> gallery=<dir> "
                             "images=<dir or file> out=<file.jsonl>")
-    device = str(cfg.device)
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    model, size, num_anchors, ckpt_hash = load_predictor(cfg.ckpt, cfg.get("image_size"), device)
+    recognizer = recognizer_from_config(cfg)
     files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
     if not files:
         raise MatlError(f"images={cfg.images} holds no files")
-    enrolled = enrol_gallery(cfg.gallery, model.feature_net, size, num_anchors, float(cfg.gallery_fill),
-                             ckpt_hash if cfg.cache else None)
-    gallery = enrolled.gallery.to(device)
-    recognizer = Recognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
-                            gallery_features=enrolled.features)
-    # quantize=int8: calibrated on gallery images warped by random homographies (matl/inference/quantize.py)
-    quantize = apply_quantize_option(recognizer, cfg, lambda: calibration_images(gallery.images))
-    recognizer, inference = configure_recognizer(recognizer, cfg)  # search=exact|faiss, refine=true
+    recognizer.enrol(cfg.gallery, cache=bool(cfg.cache))
     out = Path(cfg.out).expanduser()
-    out.parent.mkdir(parents=True, exist_ok=True)
     viz_dir = Path(cfg.viz_dir) if cfg.viz else None
-    with open(out, "w") as f:
-        def sink(record: dict[str, Any]) -> None:
-            f.write(json.dumps(record) + "\n")
-            f.flush()  # partial results survive an interrupted run over a large folder
-        done, skipped = predict_files(recognizer, enrolled, files, size, sink, int(cfg.batch_size),
-                                      float(cfg.query_fill), viz_dir, device)
-    summary = {"predicted": done, "skipped": skipped, "out": str(out), "image_size": size, "N": num_anchors,
-               "gallery_objects": len(gallery.object_names), "gallery_planes": len(enrolled.paths),
-               "viz_dir": None if viz_dir is None else str(viz_dir), **inference, **quantize}
+    handle = None
+    unknown = 0
+
+    def sink(record: dict[str, Any]) -> None:
+        nonlocal handle, unknown
+        unknown += not record["known"]
+        if handle is None:  # opened on the first answer: a run with no readable image writes no file
+            out.parent.mkdir(parents=True, exist_ok=True)
+            handle = open(out, "w")  # noqa: SIM115 - closed below, kept open across batches
+        handle.write(json.dumps(record) + "\n")
+        handle.flush()  # partial results survive an interrupted run over a large folder
+
+    try:
+        done, bad = predict_files(recognizer, files, sink, viz_dir)
+    finally:
+        if handle is not None:
+            handle.close()
+    if done == 0:
+        names = ", ".join(str(p) for p in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        raise MatlError(f"images={cfg.images}: no readable image among {len(bad)} file(s) ({names}); "
+                        f"nothing was written to {out}")
+    gallery = recognizer.gallery
+    summary = {"predicted": done, "skipped": len(bad), "skipped_files": [str(p) for p in bad], "out": str(out),
+               "image_size": recognizer.image_size, "N": recognizer.num_anchors,
+               "gallery_objects": len(gallery.object_names), "gallery_planes": len(recognizer.planes),
+               "unknown": unknown, "threshold": recognizer.threshold,
+               "viz_dir": None if viz_dir is None else str(viz_dir), **recognizer.options()}
     log.info("predict: %s", json.dumps(summary))
     return summary

@@ -45,6 +45,7 @@ class EnrolledGallery:
         file_sizes: ``(P, 2)`` int64 ``(height, width)`` of each canonical image file.
         paths: ``(P,)`` the canonical image file of each plane.
         cache_file: the feature cache used or written, if any.
+        canon_u8: ``(P, 3, S, S)`` uint8 canonical images at model size (the anchors are their rotations).
     """
 
     gallery: Gallery
@@ -53,6 +54,7 @@ class EnrolledGallery:
     file_sizes: torch.Tensor
     paths: list[Path]
     cache_file: Path | None = None
+    canon_u8: torch.Tensor | None = None
 
 
 def report_skipped(path: Path, reason: str) -> None:
@@ -122,8 +124,8 @@ def _write_cache(path: Path, payload: dict[str, Any]) -> None:
                 old.unlink()
 
 
-def _build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: list[str],
-                   object_names: list[str], num_anchors: int) -> Gallery:
+def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: list[str],
+                  object_names: list[str], num_anchors: int) -> Gallery:
     """The ``P * N`` fixed anchors (DESIGN §2) of the canonical images, flattened plane-major."""
     P, N = len(canon_u8), num_anchors
     size = int(canon_u8.shape[-1])
@@ -174,7 +176,7 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
     # objects whose every plane was skipped disappear; the others are re-indexed densely
     used_objects = sorted({files.plane_object[i] for i in kept})
     remap = {o: j for j, o in enumerate(used_objects)}
-    gallery = _build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
+    gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
                              [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
                              num_anchors)
     features = None
@@ -189,6 +191,7 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
                                       "canon_H_file": canon_H_file, "file_sizes": file_sizes,
                                       "kept": torch.tensor(kept, dtype=torch.long), "features": features})
     log.info("gallery: %d objects, %d planes, %d anchors", len(gallery.object_names), len(kept), len(gallery))
-    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept], cache_path)
+    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept], cache_path,
+                           canon_u8)
 
 

@@ -1,0 +1,578 @@
+"""The Python API: enrol products, recognise camera crops (or answer "unknown"), pose in the caller's pixels.
+
+>>> from matl import Recognizer
+>>> rec = Recognizer.from_checkpoint("outputs/train/<time>/checkpoints/best.ckpt")
+>>> rec.enrol("gallery/")                       # <gallery>/<object>/<plane>.png, no retraining
+>>> rec.add("tea", "front", "tea_front.png")    # one more product at run time
+>>> match = rec.predict(camera_crop)            # HxWx3 uint8 RGB, HxWx4 with alpha as the mask, a path
+>>> match.object, match.known, match.H          # H: gallery image pixels -> crop pixels
+
+A :class:`Recognizer` holds one model and one gallery. Every enrolled plane keeps its canonical
+image at model size, its ``N`` anchors' features (computed once, when the plane is added) and the
+matrix from its gallery image's pixels to the model frame, so poses come back in the pixels of the
+images the caller gave: ``cv2.warpPerspective(gallery_img, match.H, (w, h))`` lands on the query.
+
+Open set: a query whose statistic exceeds :attr:`Recognizer.threshold` is answered ``known=False``
+(``object`` None). The statistic is ``ratio`` (default): the distance to the nearest anchor over
+the distance to the nearest anchor of any *other* product (a query of an enrolled product is much
+closer to it than to anything else; an unenrolled product is about as far from its two nearest
+products), or ``distance``: the nearest-anchor distance itself. With ``threshold="auto"`` the
+threshold is calibrated on the gallery alone (:func:`calibrate_open_set`): warped copies of every
+enrolled plane (the training warps) are embedded; their statistic against the whole gallery is
+the *genuine* sample, and against the gallery without their own product the *impostor* sample
+(what an unenrolled product looks like). The threshold is the ``open_set_quantile`` quantile of
+the genuine sample; ``score`` is the share of the impostor sample above the query's statistic.
+
+One call at a time: the methods take a lock, so one recognizer can be shared by threads that take
+turns; for parallel queries make one recognizer per thread (they share nothing global).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from matl.data.gallery import Gallery
+from matl.data.image_files import fit_to_model, load_image_file, pose_in_files
+from matl.geometry import HomographySampler, warp_image
+from matl.inference.gallery import build_gallery, enrol_gallery
+from matl.inference.quantize import calibration_images, quantize_recognizer
+from matl.inference.recognizer import Prediction, embed
+from matl.inference.recognizer import Recognizer as GalleryRecognizer
+from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
+from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
+from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
+from matl.utils.errors import MatlError
+
+__all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model"]
+
+GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
+PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
+
+
+@dataclass
+class Match:
+    """The answer for one query image.
+
+    Attributes:
+        object, plane: the recognised product and face; None when ``known`` is False.
+        anchor: index ``k`` of the selected anchor (rotation ``k * 360 / N``) of the nearest plane.
+        distance: L2 feature distance to that anchor.
+        score: in [0, 1], the share of the gallery's impostor distances above ``distance``
+            (1: far closer than any unenrolled product came in calibration); NaN without calibration.
+        known: False when ``distance`` exceeds the open-set threshold.
+        H: ``(3, 3)`` float64 ``query_H_canon`` in pixels: gallery image of the plane -> the given query
+            image (``H[2, 2] = 1``); None for models without an STN. Given for the nearest plane even
+            when ``known`` is False.
+        nearest_object, nearest_plane: the nearest plane's labels, also when ``known`` is False.
+        gallery_image: the gallery file of the plane (None for a plane added as an array).
+        alternatives: the next-nearest *other* products (``top_k - 1`` of them), each as a Match of its
+            nearest plane (``anchor`` -1, no ``H``, ``score`` NaN).
+    """
+
+    object: str | None
+    plane: str | None
+    anchor: int
+    distance: float
+    score: float
+    known: bool
+    H: np.ndarray | None
+    nearest_object: str
+    nearest_plane: str
+    gallery_image: str | None = None
+    alternatives: list[Match] = field(default_factory=list)
+
+
+@dataclass
+class _Plane:
+    """One enrolled plane: canonical image (uint8 ``(3, S, S)``), file geometry and anchor features."""
+
+    object: str
+    name: str
+    canon_u8: torch.Tensor
+    canon_H_file: torch.Tensor      # (3, 3) float64, gallery image pixel -> model pixel
+    file_size: tuple[int, int]      # (height, width)
+    path: str | None
+    features: torch.Tensor          # (N, D) float32
+    calibration: torch.Tensor | None = None  # (W, D) features of warped copies (open-set calibration)
+
+
+def load_embedding_model(ckpt_path: str | Path, image_size: int | None = None,
+                         device: str = "cpu") -> tuple[nn.Module, int, int, str]:
+    """The checkpoint's model (eval mode, on ``device``), its image size, N and file sha256.
+
+    The size is always the checkpoint's; ``image_size`` only asserts it.
+
+    Raises:
+        MatlError: not a matl checkpoint, inconsistent, or a model that cannot enrol new products.
+    """
+    ckpt = load_checkpoint(ckpt_path)
+    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
+    if image_size is not None and int(image_size) != size:
+        raise MatlError(f"checkpoint {ckpt_path} was trained at {size} px, not image_size={image_size}: the model "
+                        "size always comes from the checkpoint (drop image_size=)")
+    config = ckpt.get("matl_config")
+    if not isinstance(config, dict) or "model" not in config:
+        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train")
+    data_size = config.get("data", {}).get("image_size")
+    if data_size is not None and int(data_size) != size:
+        raise MatlError(f"checkpoint {ckpt_path} is inconsistent: matl_image_size={size} but its config says "
+                        f"data.image_size={data_size}")
+    model = build_model(config["model"], ckpt, ckpt_path)
+    if not hasattr(model, "feature_net"):
+        raise MatlError(f"checkpoint {ckpt_path} is a {type(model).__name__}, which cannot enrol new objects: "
+                        "predict needs an embedding model (model=matl or model=tl)")
+    model.eval()
+    model.homography_config = config.get("data", {}).get("homography")  # the training warps, for calibration
+    return model.to(device), size, num_anchors, file_sha256(ckpt_path)
+
+
+def _search_factory(search: str | SearchFactory | None) -> SearchFactory:
+    if search is None or search == "exact":
+        return ExactSearch
+    if search == "faiss":
+        return FaissSearch
+    if callable(search):
+        return search
+    raise MatlError(f"search={search!r} is invalid: use 'exact', 'faiss' or a search factory")
+
+
+def _refiner(refine: bool | PhotometricRefiner | None) -> PhotometricRefiner | None:
+    if refine is None or refine is False:
+        return None
+    if refine is True:
+        return PhotometricRefiner()
+    if isinstance(refine, PhotometricRefiner):
+        return refine
+    raise MatlError(f"refine={refine!r} is invalid: use true, false or a PhotometricRefiner")
+
+
+def _as_rgb(image: Any, what: str) -> np.ndarray:
+    """A query or gallery image as float32 ``(H, W, 3)`` RGB in [0, 1], transparent pixels set to 0."""
+    if isinstance(image, (str, Path)):
+        return load_image_file(image)
+    if isinstance(image, torch.Tensor):
+        image = image.detach().cpu()
+        if image.ndim != 3 or image.shape[0] not in (3, 4):
+            raise MatlError(f"{what}: a tensor image must be (3, H, W) or (4, H, W), got {tuple(image.shape)}")
+        image = image.permute(1, 2, 0).numpy()
+    array = np.asarray(image)
+    if array.ndim == 2:
+        array = np.repeat(array[..., None], 3, axis=-1)
+    if array.ndim != 3 or array.shape[-1] not in (3, 4) or array.shape[0] == 0 or array.shape[1] == 0:
+        raise MatlError(f"{what}: expected an HxWx3 RGB or HxWx4 RGBA image, got shape {array.shape}")
+    if array.dtype == np.uint8:
+        x = array.astype(np.float32) / 255.0
+    elif array.dtype.kind == "f":
+        x = np.clip(np.nan_to_num(array.astype(np.float32)), 0.0, 1.0)
+    else:
+        raise MatlError(f"{what}: expected uint8 (0-255) or float (0-1) pixels, got {array.dtype}")
+    if x.shape[-1] == 4:  # alpha is the segmentation mask: background becomes 0, as in training
+        x = x[..., :3] * x[..., 3:4]
+    return np.ascontiguousarray(x)
+
+
+def calibrate_open_set(genuine: torch.Tensor, impostor: torch.Tensor, quantile: float) -> float:
+    """The open-set threshold: the ``quantile`` quantile of the genuine statistics.
+
+    Args:
+        genuine: ``(M,)`` statistics of warped gallery copies against the whole gallery.
+        impostor: ``(M',)`` the same against the gallery without their own product (unused by the
+            rule; kept so the trade-off can be reported beside it).
+        quantile: in (0, 1].
+    """
+    if not 0.0 < quantile <= 1.0:
+        raise MatlError(f"open_set_quantile={quantile} is invalid: use a fraction in (0, 1]")
+    if len(genuine) == 0:
+        return float("inf")
+    return float(torch.quantile(genuine.double(), quantile))
+
+
+class Recognizer:
+    """Recognition and pose of camera crops against an enrolled gallery; see the module docstring.
+
+    Args:
+        model: an embedding model (``feature_net``, ``stn``, ``anchor_choice``), e.g. from
+            :func:`load_embedding_model`.
+        image_size, num_anchors: the model's ``S`` and ``N``.
+        model_id: identifies the weights (the checkpoint's sha256); a saved gallery of another model
+            is refused.
+        device: ``cpu`` or ``cuda``.
+        refine: photometric refinement of every pose (True: the default refiner; or a
+            :class:`~matl.inference.refine.PhotometricRefiner`).
+        quantize: ``none`` or ``int8`` (int8 convolutions for the query networks, float fallback).
+        search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
+        threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
+            query gets the nearest product).
+        open_set_statistic: ``ratio`` or ``distance`` (see the module docstring).
+        open_set_quantile: with ``auto``, the quantile of the genuine calibration sample used.
+        calibration_warps: warped copies per plane for the calibration.
+        gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
+            (:func:`matl.data.image_files.fit_geometry`).
+        batch_size: query images per forward pass.
+    """
+
+    def __init__(self, model: nn.Module, image_size: int, num_anchors: int, model_id: str, *,
+                 device: str = "cpu", refine: bool | PhotometricRefiner | None = False, quantize: str = "none",
+                 search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
+                 open_set_statistic: str = "ratio", open_set_quantile: float = 0.99, calibration_warps: int = 8,
+                 gallery_fill: float = 1.0,
+                 query_fill: float = 1.0, batch_size: int = 64) -> None:
+        if quantize not in ("none", "int8"):
+            raise MatlError(f"quantize={quantize!r} is invalid: use none or int8")
+        if not (threshold is None or threshold == "auto" or isinstance(threshold, (int, float))):
+            raise MatlError(f"threshold={threshold!r} is invalid: use auto, a distance or None (closed set)")
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.model = model.to(device).eval()
+        self.image_size, self.num_anchors, self.model_id = int(image_size), int(num_anchors), str(model_id)
+        self.device = torch.device(device)
+        self.refiner = _refiner(refine)
+        self.quantize = quantize
+        self.search = _search_factory(search)
+        self.threshold_option = threshold
+        if open_set_statistic not in ("ratio", "distance"):
+            raise MatlError(f"open_set_statistic={open_set_statistic!r} is invalid: use ratio or distance")
+        self.open_set_statistic = open_set_statistic
+        self.open_set_quantile = float(open_set_quantile)
+        self.calibration_warps = int(calibration_warps)
+        self.gallery_fill, self.query_fill = float(gallery_fill), float(query_fill)
+        self.batch_size = int(batch_size)
+        self.quantize_fallback: str | None = None
+        self._planes: list[_Plane] = []
+        self._lock = threading.RLock()
+        self._built: tuple[Any, Gallery] | None = None
+        self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
+        self._last_queries = torch.zeros(0)
+
+    # -------------------------------------------------------------------------------- construction
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, **options: Any) -> Recognizer:
+        """A recognizer for a ``matl.train`` checkpoint; ``options`` as the constructor's."""
+        model, size, num_anchors, sha = load_embedding_model(path, device="cpu")
+        return cls(model, size, num_anchors, sha, **options)
+
+    @classmethod
+    def pretrained(cls, **options: Any) -> Recognizer:
+        """The model shipped inside the package (loaded offline)."""
+        if not PRETRAINED.is_file():
+            raise MatlError(f"no pretrained model ships with this version of matl ({PRETRAINED} is missing): "
+                            "train one with python -m matl.train and use "
+                            "Recognizer.from_checkpoint(<run>/checkpoints/best.ckpt)")
+        return cls.from_checkpoint(PRETRAINED, **options)
+
+    # ------------------------------------------------------------------------------------ gallery
+    @property
+    def objects(self) -> list[str]:
+        """The enrolled products, in enrolment order."""
+        return list(dict.fromkeys(p.object for p in self._planes))
+
+    @property
+    def planes(self) -> list[tuple[str, str]]:
+        """``(object, plane)`` of every enrolled plane."""
+        return [(p.object, p.name) for p in self._planes]
+
+    def _embed_anchors(self, canon_u8: torch.Tensor) -> torch.Tensor:
+        gallery = build_gallery(canon_u8, [0] * len(canon_u8), ["p"] * len(canon_u8), ["o"], self.num_anchors)
+        return embed(self.model.feature_net, gallery.images.to(self.device)).cpu()
+
+    def _changed(self) -> None:
+        self._built = None
+        self._calibrated = None
+
+    def enrol(self, folder: str | Path, cache: bool = True) -> Recognizer:
+        """Add every plane of a gallery folder ``<folder>/<object>/<plane>.{png,jpg}`` (features cached on disk)."""
+        with self._lock:
+            enrolled = enrol_gallery(folder, self.model.feature_net, self.image_size, self.num_anchors,
+                                     self.gallery_fill, self.model_id if cache else None)
+            g, N = enrolled.gallery, self.num_anchors
+            canon_u8 = enrolled.canon_u8
+            for p, path in enumerate(enrolled.paths):
+                obj = g.object_names[int(g.object_index[p * N])]
+                self._remove_plane(obj, g.plane_names[p])
+                self._planes.append(_Plane(obj, g.plane_names[p], canon_u8[p], enrolled.canon_H_file[p],
+                                           tuple(int(v) for v in enrolled.file_sizes[p]), str(path),
+                                           enrolled.features[p * N:(p + 1) * N]))
+            self._changed()
+        return self
+
+    def add(self, object: str, plane: str, image: Any) -> Recognizer:
+        """Enrol one canonical image (a path, an HxWx3/HxWx4 array or a (3|4, H, W) tensor) as ``object/plane``.
+
+        A plane of the same name replaces the old one.
+        """
+        rgb = _as_rgb(image, f"add({object!r}, {plane!r})")
+        fitted, fit = fit_to_model(rgb, self.image_size, self.gallery_fill)
+        canon_u8 = (fitted * 255.0).round().to(torch.uint8)
+        with self._lock:
+            features = self._embed_anchors(canon_u8[None])
+            self._remove_plane(object, plane)
+            self._planes.append(_Plane(str(object), str(plane), canon_u8, fit.model_H_file, rgb.shape[:2],
+                                       str(image) if isinstance(image, (str, Path)) else None, features))
+            self._changed()
+        return self
+
+    def _remove_plane(self, object: str, plane: str) -> None:
+        self._planes = [p for p in self._planes if (p.object, p.name) != (object, plane)]
+
+    def remove(self, object: str) -> Recognizer:
+        """Forget every plane of ``object``."""
+        with self._lock:
+            if object not in self.objects:
+                raise MatlError(f"remove({object!r}): no such product; enrolled: {', '.join(self.objects) or 'none'}")
+            self._planes = [p for p in self._planes if p.object != object]
+            self._changed()
+        return self
+
+    def save(self, path: str | Path) -> None:
+        """Write the enrolled gallery (images, features, calibration) to ``path`` (plain tensors)."""
+        from matl.utils.io import atomic_write
+
+        with self._lock:
+            payload = {"format": GALLERY_FORMAT, "model_id": self.model_id, "image_size": self.image_size,
+                       "num_anchors": self.num_anchors, "gallery_fill": self.gallery_fill,
+                       "planes": [{k: v for k, v in dataclasses.asdict(p).items()} for p in self._planes]}
+            with atomic_write(path, "wb") as f:
+                torch.save(payload, f)
+
+    def load(self, path: str | Path) -> Recognizer:
+        """Replace the gallery by one written by :meth:`save` with the same model; refused otherwise."""
+        try:
+            payload = torch.load(Path(path), map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise MatlError(f"{path}: no such gallery file") from None
+        except Exception as error:
+            raise MatlError(f"{path}: not a matl gallery file ({' '.join(str(error).split())[:200]})") from error
+        if not isinstance(payload, dict) or payload.get("format") != GALLERY_FORMAT:
+            raise MatlError(f"{path}: not a matl gallery file of format {GALLERY_FORMAT}")
+        if payload.get("model_id") != self.model_id:
+            raise MatlError(f"{path} was enrolled with another model ({str(payload.get('model_id'))[:12]}..., this one "
+                            f"is {self.model_id[:12]}...): enrol the gallery again with this model")
+        if payload.get("gallery_fill") != self.gallery_fill:
+            raise MatlError(f"{path} was enrolled with gallery_fill={payload.get('gallery_fill')}, this recognizer "
+                            f"uses {self.gallery_fill}")
+        with self._lock:
+            self._planes = [_Plane(**{**p, "file_size": tuple(p["file_size"])}) for p in payload["planes"]]
+            self._changed()
+        return self
+
+    # ----------------------------------------------------------------------------------- queries
+    def _build(self) -> tuple[Any, Gallery]:
+        """The batch recognizer over the current planes (rebuilt after any gallery change)."""
+        if self._built is not None:
+            return self._built
+        if not self._planes:
+            raise MatlError("the gallery is empty: enrol(folder) or add(object, plane, image) first")
+        objects = self.objects
+        gallery = build_gallery(torch.stack([p.canon_u8 for p in self._planes]),
+                                [objects.index(p.object) for p in self._planes], [p.name for p in self._planes],
+                                objects, self.num_anchors).to(self.device)
+        features = torch.cat([p.features for p in self._planes]).to(self.device)
+        model = self.model
+        recognizer = GalleryRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
+                                       gallery_features=features, search=self.search)
+        if self.quantize == "int8":
+            self.quantize_fallback = quantize_recognizer(recognizer, calibration_images(gallery.images))
+        predictor = RefinedRecognizer(recognizer, self.refiner) if self.refiner is not None else recognizer
+        self._built = (predictor, gallery)
+        return self._built
+
+    def _calibration_features(self) -> None:
+        """Features of warped copies of every plane that has none yet (the training warps; once per plane)."""
+        missing = [p for p in self._planes if p.calibration is None]
+        if not missing:
+            return
+        options = getattr(self.model, "homography_config", None) or {}
+        sampler = HomographySampler(**{k: v for k, v in dict(options).items() if k != "_target_"})
+        size = (self.image_size, self.image_size)
+        H = torch.cat([sampler.sample(self.calibration_warps, size, torch.Generator().manual_seed(
+            zlib.crc32(f"{plane.object}/{plane.name}".encode()))) for plane in missing]).float()
+        canon = torch.stack([p.canon_u8 for p in missing]).float().div(255.0)
+        images = warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
+        recognizer, _ = self._build()
+        inner = getattr(recognizer, "recognizer", recognizer)
+        features = torch.cat([inner.embed_queries(images[i:i + 256])[0] for i in range(0, len(images), 256)])
+        for plane, chunk in zip(missing, features.float().cpu().split(self.calibration_warps), strict=True):
+            plane.calibration = chunk
+
+    def _plane_distances(self, features: torch.Tensor) -> torch.Tensor:
+        """``(Q, P)`` distance of each feature to the nearest anchor of every enrolled plane."""
+        gallery = torch.cat([p.features for p in self._planes]).double()
+        d = torch.cdist(features.double().cpu(), gallery)  # (Q, G), anchors plane-major
+        return d.view(len(features), len(self._planes), -1).min(2).values
+
+    def _object_distances(self, features: torch.Tensor) -> tuple[torch.Tensor, list[str]]:
+        """``(Q, O)`` distance of each feature to the nearest anchor of every product, and the products."""
+        objects = self.objects
+        by_plane = self._plane_distances(features)
+        owner = torch.tensor([objects.index(p.object) for p in self._planes])
+        out = torch.full((len(features), len(objects)), float("inf"), dtype=torch.float64)
+        return out.scatter_reduce(1, owner.expand(len(features), -1), by_plane, reduce="amin"), objects
+
+    def _statistic(self, nearest: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        if self.open_set_statistic == "distance":
+            return nearest
+        return nearest / second.clamp_min(1e-12)
+
+    def calibration(self) -> dict[str, torch.Tensor]:
+        """Genuine and impostor samples of the open-set statistic (see the module docstring)."""
+        with self._lock:
+            self._calibration_features()
+            features = torch.cat([p.calibration for p in self._planes])
+            own = torch.tensor([self.objects.index(p.object) for p in self._planes
+                                for _ in range(self.calibration_warps)])
+            d, objects = self._object_distances(features)               # (M, O)
+            ranked = d.sort(1).values
+            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0])
+            impostor = torch.zeros(0, dtype=torch.float64)
+            if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
+                others = d.scatter(1, own[:, None], float("inf")).sort(1).values
+                impostor = self._statistic(others[:, 0], others[:, 1])
+            return {"genuine": genuine, "impostor": impostor}
+
+    @property
+    def threshold(self) -> float | None:
+        """The open-set threshold on the statistic in force (None: closed set)."""
+        with self._lock:
+            if self.threshold_option is None:
+                return None
+            if self.threshold_option != "auto":
+                return float(self.threshold_option)
+            return self._calibrate()[0]
+
+    def _calibrate(self) -> tuple[float, torch.Tensor]:
+        if self._calibrated is None:
+            samples = self.calibration()
+            threshold = calibrate_open_set(samples["genuine"], samples["impostor"], self.open_set_quantile)
+            self._calibrated = (threshold, samples["impostor"].sort().values)
+        return self._calibrated
+
+    def _score(self, statistic: float) -> float:
+        if self.threshold_option is None or not self._planes:
+            return float("nan")
+        impostor = self._calibrate()[1]
+        if len(impostor) == 0:
+            return float("nan")
+        farther = len(impostor) - int(torch.searchsorted(impostor, torch.tensor([statistic], dtype=impostor.dtype)))
+        return farther / len(impostor)
+
+    def predict_tensor(self, queries: torch.Tensor) -> Prediction:
+        """The model-frame prediction for ``(B, 3, S, S)`` images already at model size (no pose in files)."""
+        with self._lock:
+            recognizer, _ = self._build()
+            return recognizer(queries.to(self.device))
+
+    @property
+    def gallery(self) -> Gallery:
+        """The model-frame gallery of every enrolled plane's ``N`` anchors (plane-major)."""
+        with self._lock:
+            return self._build()[1]
+
+    def plane_at(self, index: int) -> _Plane:
+        """The enrolled plane of a prediction's ``plane_index``."""
+        return self._planes[index]
+
+    def options(self) -> dict[str, Any]:
+        """What the queries run with (for result files): search, refinement, quantisation."""
+        refiner = None
+        if self.refiner is not None:
+            refiner = {k: v for k, v in vars(self.refiner).items() if not k.startswith("_")}
+        name = getattr(self.search, "func", self.search)
+        return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
+                "refine": self.refiner is not None, "refiner": refiner, "quantize": self.quantize,
+                "quantize_fallback": self.quantize_fallback}
+
+    def predict_details(self, arrays: list[np.ndarray]) -> tuple[list[Match], Prediction, torch.Tensor]:
+        """:meth:`predict` for float RGB ``(H, W, 3)`` arrays, plus the model-frame prediction and the
+        model-size query images it came from (for pictures and diagnostics)."""
+        with self._lock:
+            matches, pred = self._predict_arrays(arrays)
+            return matches, pred, self._last_queries
+
+    def predict(self, images: Any, top_k: int = 1) -> Match | list[Match]:
+        """Recognise one image or a batch; see :class:`Match`.
+
+        Args:
+            images: a path, an ``HxWx3`` uint8 RGB / ``HxWx4`` RGBA array (any size), a ``(3|4, H, W)``
+                tensor, a list of those, or a ``(B, 3, H, W)`` tensor.
+            top_k: also return the ``top_k - 1`` next-nearest other planes in ``Match.alternatives``.
+        Returns:
+            One :class:`Match` for a single image, else a list in the given order.
+        """
+        single = not (isinstance(images, (list, tuple)) or (isinstance(images, torch.Tensor) and images.ndim == 4))
+        items: Sequence[Any] = [images] if single else list(images)
+        if top_k < 1:
+            raise MatlError(f"top_k={top_k} is invalid: use an integer >= 1")
+        matches: list[Match] = []
+        with self._lock:
+            for start in range(0, len(items), self.batch_size):
+                chunk = [_as_rgb(x, f"image {start + i}") for i, x in enumerate(items[start:start + self.batch_size])]
+                matches.extend(self._predict_arrays(chunk, top_k)[0])
+        return matches[0] if single else matches
+
+    def _predict_arrays(self, arrays: list[np.ndarray], top_k: int = 1) -> tuple[list[Match], Prediction]:
+        """Matches of float RGB ``(H, W, 3)`` arrays, and the model-frame prediction they came from."""
+        recognizer, _ = self._build()
+        fitted = [fit_to_model(a, self.image_size, self.query_fill) for a in arrays]
+        queries = torch.stack([f[0] for f in fitted]).to(self.device)
+        self._last_queries = queries
+        query_H_file = torch.stack([f[1].model_H_file for f in fitted])
+        pred = recognizer(queries)
+        plane = pred.plane_index.cpu()
+        canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
+        H = None
+        if pred.query_H_canon is not None:
+            H = pose_in_files(pred.query_H_canon.cpu(), canon_H_file[plane], query_H_file)
+        threshold = self.threshold
+        features = embed(self.model.feature_net, pred.warped)  # c(s(query)): per-product distances
+        by_object, objects = self._object_distances(features)
+        own = torch.tensor([objects.index(self._planes[int(p)].object) for p in plane])
+        nearest = by_object.gather(1, own[:, None])[:, 0]
+        second = by_object.scatter(1, own[:, None], float("inf")).min(1).values
+        statistic = self._statistic(nearest, second if len(objects) > 1 else nearest)
+        alternatives = self._alternatives(features, own, top_k)
+        matches = []
+        for i in range(len(arrays)):
+            matches.append(self._match(int(plane[i]), int(pred.anchor_index[i]), float(pred.distance[i]),
+                                       float(statistic[i]), None if H is None else H[i].numpy(), threshold,
+                                       alternatives[i]))
+        return matches, pred
+
+    def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,
+               threshold: float | None, alternatives: list[Match]) -> Match:
+        p = self._planes[plane]
+        known = threshold is None or statistic <= threshold
+        return Match(p.object if known else None, p.name if known else None, anchor, distance,
+                     self._score(statistic), known, H, p.object, p.name, p.path, alternatives)
+
+    def _alternatives(self, features: torch.Tensor, own: torch.Tensor, top_k: int) -> list[list[Match]]:
+        """The ``top_k - 1`` next-nearest other products of each query, each by its nearest plane (no pose)."""
+        if top_k <= 1:
+            return [[] for _ in range(len(own))]
+        by_plane = self._plane_distances(features)
+        objects = self.objects
+        out = []
+        for i in range(len(own)):
+            seen = {int(own[i])}
+            matches = []
+            for k in torch.argsort(by_plane[i]).tolist():
+                plane = self._planes[k]
+                if objects.index(plane.object) in seen:
+                    continue
+                seen.add(objects.index(plane.object))
+                d = float(by_plane[i, k])
+                matches.append(Match(plane.object, plane.name, -1, d, float("nan"), True, None, plane.object,
+                                     plane.name, plane.path))
+                if len(matches) == top_k - 1:
+                    break
+            out.append(matches)
+        return out

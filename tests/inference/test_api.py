@@ -1,0 +1,203 @@
+"""The Python API (``from matl import Recognizer``): enrol, add, remove, predict, open set, save / load."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+import matl
+from matl import Match, Recognizer
+from matl.data.image_files import fit_geometry
+from matl.geometry import corner_error_px
+from matl.inference.api import calibrate_open_set
+from matl.inference.files import predict
+from matl.utils.errors import MatlError
+from tests.test_eval_predict import (
+    COLOURS,
+    GALLERY_HW,
+    QUERY_HW,
+    FixedSTN,
+    MeanColour,
+    make_files,
+    predict_cfg,
+    smooth_texture,
+    tiny_run,  # noqa: F401 - the module fixture
+)
+
+SIZE = 48
+
+
+class StubModel(nn.Module):
+    """An embedding model whose ``c()`` is the mean colour and whose ``s()`` returns a fixed pose."""
+
+    def __init__(self, query_H_anchor: torch.Tensor) -> None:
+        super().__init__()
+        self.feature_net, self.stn, self.anchor_choice = MeanColour(), FixedSTN(query_H_anchor), "feature"
+
+
+def exact_model_pose() -> torch.Tensor:
+    """The model-frame pose of make_files' queries (N = 1: the anchor is the canonical image)."""
+    from tests.test_eval_predict import true_query_H_gallery
+
+    gallery_fit = fit_geometry(*GALLERY_HW, SIZE).model_H_file
+    query_fit = fit_geometry(*QUERY_HW, SIZE).model_H_file
+    return query_fit @ torch.from_numpy(true_query_H_gallery()) @ torch.linalg.inv(gallery_fit)
+
+
+def stub_recognizer(**options) -> Recognizer:
+    return Recognizer(StubModel(exact_model_pose()), SIZE, 1, "stub-model", **options)
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    return cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].copy()
+
+
+def test_enrol_add_predict_and_pose_in_the_callers_pixels(tmp_path: Path) -> None:
+    gallery, queries, H_true = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery)
+    assert rec.objects == sorted(COLOURS)
+    # a product added at run time from an array, without retraining
+    rec.add("yellow_tin", "front", (smooth_texture(*GALLERY_HW, (1.0, 0.9, 0.1), 5) * 255).astype(np.uint8))
+    assert "yellow_tin" in rec.objects and len(rec.planes) == 4
+
+    query = read_rgb(queries / "green_can.png")  # HxWx3 uint8 RGB, another size than the gallery file
+    match = rec.predict(query)
+    assert isinstance(match, Match) and match.object == "green_can" and match.known
+    assert match.gallery_image == str(gallery / "green_can" / "front.png")
+    # H maps the gallery file onto the query image: corner error in query pixels, scaled to 100 px
+    err = corner_error_px(torch.from_numpy(match.H)[None], torch.from_numpy(H_true)[None], GALLERY_HW)
+    assert float(err) * 100 / max(GALLERY_HW) < 2.0
+    warped = cv2.warpPerspective(read_rgb(gallery / "green_can" / "front.png").astype(np.float32), match.H,
+                                 (QUERY_HW[1], QUERY_HW[0]))
+    assert np.abs(warped - query.astype(np.float32)).max() <= 1.0
+
+    # a batch: paths, arrays, an RGBA array whose alpha is the mask, a (B, 3, H, W) tensor
+    rgba = np.dstack([query, np.full(query.shape[:2], 255, np.uint8)])
+    batch = rec.predict([queries / "red_box.png", read_rgb(queries / "blue_card.png"), rgba])
+    assert [m.object for m in batch] == ["red_box", "blue_card", "green_can"]
+    tensor = torch.from_numpy(np.stack([query, query])).permute(0, 3, 1, 2).float() / 255.0
+    assert [m.object for m in rec.predict(tensor)] == ["green_can", "green_can"]
+    # top-k: the other products, nearest first
+    top = rec.predict(query, top_k=3)
+    assert len(top.alternatives) == 2 and all(a.object not in (None, "green_can") for a in top.alternatives)
+    assert top.alternatives[0].distance <= top.alternatives[1].distance
+
+    rec.remove("green_can")
+    assert rec.predict(query).object != "green_can"
+    with pytest.raises(MatlError, match="no such product"):
+        rec.remove("green_can")
+
+
+def test_alpha_is_the_mask(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery)
+    query = read_rgb(queries / "red_box.png")
+    alpha = np.zeros(query.shape[:2], np.uint8)
+    alpha[20:100, 10:80] = 255
+    masked = query * (alpha[..., None] > 0)
+    a = rec.predict(np.dstack([query, alpha]))
+    b = rec.predict(masked)
+    assert a.distance == pytest.approx(b.distance) and a.object == b.object
+
+
+def test_open_set_threshold_and_score(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    query = read_rgb(queries / "red_box.png")
+    closed = stub_recognizer(threshold=None).enrol(gallery)
+    assert closed.threshold is None and closed.predict(query).known
+    # a product that is not enrolled: the query of red_box against a gallery without it
+    strict = stub_recognizer(threshold=0.5, open_set_statistic="ratio").enrol(gallery).remove("red_box")
+    answer = strict.predict(query)
+    assert not answer.known and answer.object is None and answer.nearest_object in ("green_can", "blue_card")
+    auto = stub_recognizer().enrol(gallery)
+    samples = auto.calibration()
+    assert len(samples["genuine"]) == 3 * auto.calibration_warps and len(samples["impostor"]) == len(samples["genuine"])
+    assert auto.threshold == pytest.approx(calibrate_open_set(samples["genuine"], samples["impostor"], 0.99))
+    match = auto.predict(query)
+    assert match.known and 0.0 <= match.score <= 1.0
+    with pytest.raises(MatlError, match="open_set_quantile"):
+        calibrate_open_set(samples["genuine"], samples["impostor"], 0.0)
+
+
+def test_calibration_by_hand() -> None:
+    genuine = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5], dtype=torch.float64)
+    assert calibrate_open_set(genuine, torch.zeros(0), 1.0) == pytest.approx(0.5)
+    assert calibrate_open_set(genuine, torch.zeros(0), 0.5) == pytest.approx(0.3)
+    assert calibrate_open_set(genuine[:0], torch.zeros(0), 0.5) == float("inf")
+
+
+def test_save_load_and_refusal(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery)
+    rec.add("extra", "top", read_rgb(queries / "blue_card.png"))
+    rec.save(tmp_path / "gallery.pt")
+    again = stub_recognizer(threshold=None).load(tmp_path / "gallery.pt")
+    assert again.planes == rec.planes
+    query = read_rgb(queries / "red_box.png")
+    a, b = rec.predict(query), again.predict(query)
+    assert (a.object, a.distance) == (b.object, b.distance) and np.array_equal(a.H, b.H)
+    other = Recognizer(StubModel(exact_model_pose()), SIZE, 1, "another-model")
+    with pytest.raises(MatlError, match="another model"):
+        other.load(tmp_path / "gallery.pt")
+    (tmp_path / "junk.pt").write_text("junk")
+    with pytest.raises(MatlError, match="not a matl gallery"):
+        other.load(tmp_path / "junk.pt")
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path: Path) -> None:
+    rec = stub_recognizer()
+    with pytest.raises(MatlError, match="gallery is empty"):
+        rec.predict(np.zeros((10, 10, 3), np.uint8))
+    gallery, _, _ = make_files(tmp_path)
+    rec.enrol(gallery)
+    with pytest.raises(MatlError, match="expected an HxWx3"):
+        rec.predict(np.zeros((10, 10, 5), np.uint8))
+    with pytest.raises(MatlError, match="uint8"):
+        rec.predict(np.zeros((10, 10, 3), np.int32))
+    with pytest.raises(MatlError, match="no such file"):
+        rec.predict(tmp_path / "missing.png")
+    with pytest.raises(MatlError, match="top_k"):
+        rec.predict(np.zeros((10, 10, 3), np.uint8), top_k=0)
+    with pytest.raises(MatlError, match="threshold"):
+        stub_recognizer(threshold="high")
+    if not matl.inference.api.PRETRAINED.is_file():
+        with pytest.raises(MatlError, match="no pretrained model"):
+            Recognizer.pretrained()
+
+
+def test_threads_take_turns(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery)
+    images = [read_rgb(p) for p in sorted(queries.iterdir())]
+    expected = [m.object for m in rec.predict(images)]
+    answers: list[list[str | None]] = []
+
+    def worker() -> None:
+        for _ in range(3):
+            answers.append([m.object for m in rec.predict(images)])
+
+    threads = [threading.Thread(target=worker) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(answers) == 9 and all(a == expected for a in answers)
+
+
+def test_same_numbers_as_the_predict_command(tiny_run: Path, tmp_path: Path) -> None:  # noqa: F811
+    ckpt = tiny_run / "checkpoints" / "best.ckpt"
+    gallery, queries, _ = make_files(tmp_path)
+    predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["cache=false"]))
+    records = [json.loads(line) for line in (tmp_path / "out" / "pred.jsonl").read_text().splitlines()]
+    rec = Recognizer.from_checkpoint(ckpt).enrol(gallery, cache=False)
+    matches = rec.predict([record["image"] for record in records])  # one batch, as predict's
+    for record, match in zip(records, matches, strict=True):
+        assert (match.object, match.known, match.anchor) == (record["object"], record["known"], record["anchor"])
+        assert match.distance == record["distance"] and match.H.tolist() == record["H"]
