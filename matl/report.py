@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from matl.reporting.build import build_report
 from matl.reporting.runs import find_runs
 from matl.utils.errors import MatlError, user_errors
 
@@ -64,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if args.dirs and not find_runs(args.dirs) and not args.fig2:
                 raise MatlError(f"no metrics.json, eval.json or run folder under {', '.join(map(str, args.dirs))}")
+            # imported once the command line is checked: the tables' metric names come from matl.metrics (torch)
+            from matl.reporting.build import build_report
+
             report = build_report(args.dirs, out, fig5=args.fig5, auto_fig5=not args.no_fig5, fig2_data=args.fig2,
                                   fig2_plane=args.fig2_plane, fig2_size=args.fig2_size, cache_dir=args.cache_dir)
         except FileNotFoundError as error:  # e.g. a --fig5 checkpoint or a catalog's files

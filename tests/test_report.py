@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -39,3 +41,11 @@ def test_nothing_to_do_is_a_usage_error(capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(SystemExit) as exit_:
         report.main([])
     assert exit_.value.code == 2 and "give run folders, --fig2 DATA or --fig5 SINGLE MATL" in capsys.readouterr().err
+
+
+def test_user_errors_come_before_torch_is_loaded(tmp_path: Path) -> None:
+    code = ("import sys\nfrom matl import report\ntry:\n    report.main([sys.argv[1]])\nexcept SystemExit as e:\n"
+            "    print(e.code, 'torch' in sys.modules)\n")
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.stdout.strip() == "2 False", done.stderr
