@@ -35,8 +35,8 @@ from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config
 
 REPO = Path(__file__).resolve().parents[1]
-RECORD_KEYS = {"image", "object", "plane", "known", "nearest_object", "anchor", "distance", "score", "H",
-               "gallery_image"}
+RECORD_KEYS = {"image", "object", "plane", "known", "nearest_object", "anchor", "distance", "score", "statistic",
+               "H", "gallery_image"}
 
 
 # --------------------------------------------------------------------------------------- helpers

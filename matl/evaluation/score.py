@@ -177,7 +177,8 @@ def score(truth: list[Truth], predictions: list[dict[str, Any] | None], image_si
         ``(summary, per_query_rows)``; pose metrics are None when no pose can be compared (a truth
         or a prediction without ``H``, e.g. a TL model) or no query is recognised.
     """
-    objects = sorted({t.object for t in truth} | {p["object"] for p in predictions if p and "object" in p})
+    named = {p["object"] for p in predictions if p and p.get("object") is not None}  # null: answered unknown
+    objects = sorted({t.object for t in truth} | named)
     index = {name: i for i, name in enumerate(objects)}
     sizes: dict[Path, tuple[int, int]] = {}
     pose_known = all(t.H is not None for t in truth) and all(

@@ -23,6 +23,7 @@ from PIL import Image
 
 from matl.data.canonical import CanonicalSet, load_canonical
 from matl.data.datamodule import footprints_from_masks
+from matl.evaluation.open_set import open_set_summary, plot_open_set
 from matl.evaluation.score import METRICS, score_files, write_rows
 from matl.geometry import HomographySampler, warp_image
 from matl.models.checkpoint import checkpoint_info, load_checkpoint
@@ -148,6 +149,18 @@ def write_queries(cs: CanonicalSet, sampler: HomographySampler, n: int, seed: in
     return truth
 
 
+def left_out_products(names: list[str], fraction: float, seed: int) -> list[str]:
+    """``round(fraction * len(names))`` products drawn with ``seed``, kept out of the gallery (open set)."""
+    count = round(fraction * len(names))
+    order = torch.randperm(len(names), generator=torch.Generator().manual_seed(int(seed) + 1)).tolist()
+    return sorted(names[i] for i in order[:count])
+
+
+def _left_out_dir(out: Path, name: str) -> Path:
+    (out / "left_out").mkdir(exist_ok=True)
+    return out / "left_out" / name
+
+
 # -------------------------------------------------------------------------------------- commands
 def _arg(key: str, value: Any) -> str:
     """A Hydra override ``key=value``, the value quoted when Hydra's grammar would not take it bare."""
@@ -192,6 +205,10 @@ def _check(cfg: DictConfig) -> None:
             continue
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise MatlError(f"{key}={value} is invalid: use an integer >= {low}")
+    leave_out = cfg.get("leave_out", 0.0)
+    if not isinstance(leave_out, (int, float)) or isinstance(leave_out, bool) or not 0.0 <= leave_out < 1.0:
+        raise MatlError(f"leave_out={leave_out} is invalid: use a fraction in [0, 1) of the products kept out of "
+                        "the gallery (open set)")
     for key in ("exclude_seen", "gallery_crop", "refine"):
         if not isinstance(cfg.get(key), bool):
             raise MatlError(f"{key}={cfg.get(key)} is invalid: use true or false")
@@ -199,7 +216,7 @@ def _check(cfg: DictConfig) -> None:
 
 def unseen(cfg: DictConfig) -> dict[str, Any]:
     """Run the measurement for a composed ``conf/unseen.yaml``; returns what ``unseen.json`` holds."""
-    from matl.render import instantiate_source
+    from matl.data.prepare import instantiate_source
     from matl.utils.io import write_json
 
     _check(cfg)
@@ -238,13 +255,34 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
     gallery_files, canon_H_file = write_gallery(cs, out / "gallery", crop)
     truth = write_queries(cs, sampler, int(cfg.queries), int(cfg.query_seed), out / "queries", gallery_files,
                           canon_H_file, out)
+    left_out = left_out_products(cs.object_names, float(cfg.leave_out), int(cfg.query_seed))
+    for name in left_out:  # their gallery files move out of the gallery: predict never sees them
+        (out / "gallery" / name).rename(_left_out_dir(out, name))
+    for t in truth:
+        t["enrolled"] = t["object"] not in left_out
+        if not t["enrolled"]:
+            t["gallery_image"] = str(Path("left_out") / Path(t["gallery_image"]).relative_to("gallery"))
     truth_path, pred_path = out / "truth.jsonl", out / "predictions.jsonl"
-    truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth))
+    truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth if t["enrolled"]))
+    if left_out:
+        (out / "truth_left_out.jsonl").write_text("".join(json.dumps(t) + "\n" for t in truth if not t["enrolled"]))
 
+    threshold = cfg.get("threshold", "auto") if left_out else None  # leave_out=0: the closed-set benchmark
     predict_args = [_arg("ckpt", ckpt_path), _arg("gallery", out / "gallery"), _arg("images", out / "queries"),
                     _arg("out", pred_path), _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill),
-                    _arg("batch_size", cfg.batch_size), _arg("device", cfg.device), _arg("refine", cfg.refine)]
+                    _arg("batch_size", cfg.batch_size), _arg("device", cfg.device), _arg("refine", cfg.refine),
+                    _arg("threshold", "null" if threshold is None else threshold),
+                    _arg("open_set_quantile", cfg.get("open_set_quantile", 0.99))]
     run_predict([*predict_args, _arg("hydra.run.dir", out / "predict")], out)
+    open_set = None
+    if left_out:
+        predictions = {str(Path(r["image"]).relative_to(out)) if Path(r["image"]).is_absolute() else r["image"]: r
+                       for r in map(json.loads, pred_path.read_text().splitlines())}
+        open_set = open_set_summary(truth, predictions)
+        write_json(out / "open_set.json", {**open_set, "left_out": left_out})
+        plot_open_set(open_set, out / "open_set.png")
+        open_set = {k: v for k, v in open_set.items() if k != "curve"}
+        log.info("unseen: open set %s", json.dumps(open_set))
     summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)
     score_args = [_arg("predictions", pred_path), _arg("truth", truth_path), _arg("ckpt", ckpt_path),
                   _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill), _arg("out", out / "score")]
@@ -271,6 +309,8 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
         "files": {"gallery": "gallery", "queries": "queries", "truth": truth_path.name,
                   "predictions": pred_path.name, "per_query": "per_query.csv"},
     }
+    if open_set is not None:
+        result["open_set"] = {**open_set, "left_out": left_out, "curve": "open_set.json", "figure": "open_set.png"}
     write_json(out / "unseen.json", result)
     write_rows(out / "per_query.csv", rows)
     log.info("unseen: %s", json.dumps({k: result[k] for k in (*METRICS, "num_queries", "num_objects")}))

@@ -67,13 +67,15 @@ class Match:
         object, plane: the recognised product and face; None when ``known`` is False.
         anchor: index ``k`` of the selected anchor (rotation ``k * 360 / N``) of the nearest plane.
         distance: L2 feature distance to that anchor.
-        score: in [0, 1], the share of the gallery's impostor distances above ``distance``
-            (1: far closer than any unenrolled product came in calibration); NaN without calibration.
-        known: False when ``distance`` exceeds the open-set threshold.
+        score: in [0, 1], the share of the calibration's impostor statistics above ``statistic`` (1:
+            closer than any unenrolled product came in calibration); NaN without calibration.
+        known: False when ``statistic`` exceeds the open-set threshold.
         H: ``(3, 3)`` float64 ``query_H_canon`` in pixels: gallery image of the plane -> the given query
             image (``H[2, 2] = 1``); None for models without an STN. Given for the nearest plane even
             when ``known`` is False.
         nearest_object, nearest_plane: the nearest plane's labels, also when ``known`` is False.
+        statistic: the open-set statistic of the query (``open_set_statistic``: the distance ratio, or
+            ``distance``), compared with the threshold.
         gallery_image: the gallery file of the plane (None for a plane added as an array).
         alternatives: the next-nearest *other* products (``top_k - 1`` of them), each as a Match of its
             nearest plane (``anchor`` -1, no ``H``, ``score`` NaN).
@@ -90,6 +92,7 @@ class Match:
     nearest_plane: str
     gallery_image: str | None = None
     alternatives: list[Match] = field(default_factory=list)
+    statistic: float = float("nan")
 
 
 @dataclass
@@ -552,7 +555,7 @@ class Recognizer:
         p = self._planes[plane]
         known = threshold is None or statistic <= threshold
         return Match(p.object if known else None, p.name if known else None, anchor, distance,
-                     self._score(statistic), known, H, p.object, p.name, p.path, alternatives)
+                     self._score(statistic), known, H, p.object, p.name, p.path, alternatives, statistic)
 
     def _alternatives(self, features: torch.Tensor, own: torch.Tensor, top_k: int) -> list[list[Match]]:
         """The ``top_k - 1`` next-nearest other products of each query, each by its nearest plane (no pose)."""

@@ -48,6 +48,7 @@ def record_of(path: Path, match: Match) -> dict[str, Any]:
         "anchor": match.anchor,
         "distance": match.distance,
         "score": None if match.score != match.score else match.score,  # NaN (no calibration) -> null
+        "statistic": match.statistic,
         "H": None if match.H is None else match.H.tolist(),
         "gallery_image": match.gallery_image,
     }
