@@ -4,7 +4,8 @@ Each plane is rendered with an orthographic camera on its normal through the obj
 at ``supersample`` times the target size, then area-averaged down. Lighting is dominated by an
 ambient term so the print keeps its colours; a weak light from the camera adds the gentle
 fall-off that makes a cylinder read as round. The mask comes from the depth buffer, never from
-colour.
+colour. :class:`ViewRenderer` renders the same scenes from perspective cameras (rendered queries
+and anchors). Camera poses and the pixel convention are :mod:`matl.geometry.camera`'s.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import trimesh  # noqa: E402
 from trimesh.visual.texture import TextureVisuals  # noqa: E402
 
 from matl.data.catalog.shapes import PlaneView, ProductModel  # noqa: E402
+from matl.geometry.camera import camera_pose, edge_intrinsics  # noqa: E402
 
 # In linear light: flat faces get AMBIENT + DIRECT = 1 (the texture's own colour); a cylinder's
 # flanks, seen at grazing angles, fall to AMBIENT.
@@ -36,12 +38,7 @@ DIRECT = 0.28
 
 def _camera_pose(plane: PlaneView, distance: float) -> np.ndarray:
     """4x4 camera-to-world pose looking along -normal with image up = ``plane.up``."""
-    pose = np.eye(4)
-    pose[:3, 0] = plane.right
-    pose[:3, 1] = plane.up
-    pose[:3, 2] = plane.normal  # pyrender cameras look down their own -z
-    pose[:3, 3] = plane.normal * distance
-    return pose
+    return camera_pose(plane.right, plane.up, plane.normal, plane.normal * distance)
 
 
 def area_downsample(color: np.ndarray, depth: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -288,11 +285,9 @@ class ViewRenderer:
         images = np.zeros((len(cameras), self.image_size, self.image_size, 3), np.uint8)
         masks = np.zeros((len(cameras), self.image_size, self.image_size), bool)
         for i, cam in enumerate(cameras):
-            # pyrender's cx, cy are edge-based (pixel k spans [k, k+1]); ours are pixel centres.
-            # At the supersampled size a centre coordinate c maps to f * (c + 0.5) edge units.
-            cx, cy = f * (cam.principal[0] + 0.5), f * (cam.principal[1] + 0.5)
-            camera.fx = camera.fy = f * cam.focal_px
-            camera.cx, camera.cy = cx, cy
+            # pyrender's cx, cy are edge-based (pixel k spans [k, k+1]) at the supersampled size.
+            camera.fx, camera.cx, camera.cy = edge_intrinsics(cam.focal_px, cam.principal, f)
+            camera.fy = camera.fx
             camera.znear, camera.zfar = cam.znear, cam.zfar
             scene.set_pose(cam_node, cam.pose)
             scene.ambient_light = np.full(3, cam.ambient)
