@@ -1,5 +1,6 @@
-"""Keypoint baselines: SIFT+RANSAC and SuperPoint+RANSAC (Table 1 (d), (e)) and ALIKED/DISK+LightGlue."""
+"""Keypoint baselines: SIFT+RANSAC, SuperPoint+RANSAC (Table 1 (d), (e)), SIFT+RANSAC+ECC, ALIKED/DISK+LightGlue."""
 
+from matl.baselines.ecc import SiftEccMatcher
 from matl.baselines.keypoints import KeypointMatcher, MatchResult, measure_query_ms
 from matl.baselines.lightglue import LightGlueRansacMatcher
 from matl.baselines.sift import SiftRansacMatcher
@@ -9,6 +10,7 @@ __all__ = [
     "KeypointMatcher",
     "LightGlueRansacMatcher",
     "MatchResult",
+    "SiftEccMatcher",
     "SiftRansacMatcher",
     "SuperPointRansacMatcher",
     "measure_query_ms",
