@@ -13,7 +13,7 @@ Only omegaconf is imported here: validation must stay cheap.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,7 +21,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from matl.utils.errors import MatlError
+from matl.data.catalog_names import SYNTHETIC_CATALOGS  # not matl.data.catalog: that import takes seconds
+from matl.utils.errors import CONF_DIR, MatlError
 
 
 class ConfigError(MatlError, ValueError):
@@ -141,10 +142,6 @@ RULES: tuple[Rule, ...] = (
     Rule("image_size", int_at_least(16), "an integer >= 16, or null (the checkpoint's size)"),
 )
 
-# matl.data.catalog.CATALOGS, repeated so that validation does not import the catalog (2-3 s);
-# tests/test_bad_inputs.py checks the two agree.
-SYNTHETIC_CATALOGS = ("apc", "arc", "ycb", "ycb_table2")
-
 # The places that must hold the data's image size: the networks are built for it.
 SIZE_KEYS = ("model.image_size", "model.stn.image_size", "model.stn.regressor.image_size",
              "model.feature_net.image_size")
@@ -154,9 +151,34 @@ def _show(value: Any) -> str:
     return repr(value) if isinstance(value, str) else str(value)
 
 
+def check_scale_data(choices: Mapping[str, Any], conf_dir: Path = CONF_DIR) -> None:
+    """A scale with per-dataset parts (``conf/scale/data/<scale>_<data>.yaml``, e.g. the paper's
+    triplet counts) must have one for the chosen data: ``train.yaml`` includes the part with
+    ``optional``, which would otherwise skip a missing one without a word (``scale=paper data=images``
+    training at the default size). ``choices`` are the config groups' choices (Hydra's
+    ``runtime.choices``); a scale without any per-dataset part (``smoke``) is not checked."""
+    scale, data = choices.get("scale"), choices.get("data")
+    if scale in (None, "null") or data in (None, "null"):
+        return
+    parts = conf_dir / "scale" / "data"
+    if not any(parts.glob(f"{scale}_*.yaml")) or (parts / f"{scale}_{data}.yaml").is_file():
+        return
+    raise ConfigError(f"scale={scale} has no part for data={data}: create conf/scale/data/{scale}_{data}.yaml with "
+                      f"the data keys this scale sets (e.g. train_triplets: <n>, as in {scale}_synthetic_arc.yaml)")
+
+
+def _hydra_choices() -> dict[str, Any]:
+    """The running Hydra app's config-group choices; empty outside one (a config composed in a test)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return dict(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else {}
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Check the values every entry point relies on; raise :class:`ConfigError` on the first problem."""
     task = cfg.get("task_name") if isinstance(cfg, DictConfig) else None
+    if task == "train":
+        check_scale_data(_hydra_choices())
     for rule in RULES:
         value = _get(cfg, rule.key, _MISSING)
         if value is _MISSING:

@@ -2,7 +2,7 @@
 
 ``SyntheticCatalog`` is a :class:`~matl.data.canonical.CanonicalSource`: it samples products
 (:mod:`.products`, and the non-planar ones of :mod:`.nonplanar`), prints their faces
-(:mod:`.labels`), builds textured meshes (:mod:`.shapes`) and renders every canonical plane
+(:mod:`.labels`), builds textured meshes (:mod:`.models`) and renders every canonical plane
 offscreen (:mod:`.rendering`). Used from Hydra as ``_target_: matl.data.catalog.SyntheticCatalog``;
 see ``docs/datasets.md``.
 """
@@ -17,8 +17,10 @@ import numpy as np
 
 from matl.data.canonical import CanonicalSet, ProgressFn
 from matl.data.catalog.contact_sheet import contact_sheet
+from matl.data.catalog.models import product_model
 from matl.data.catalog.nonplanar import NONPLANAR_COMPOSITION, PLANES_PER_FORM, sample_nonplanar
 from matl.data.catalog.products import CATALOG_COMPOSITIONS, SHAPES, ProductSpec, sample_products
+from matl.data.catalog_names import SYNTHETIC_CATALOGS
 
 if TYPE_CHECKING:
     from matl.data.catalog.shapes import ProductModel
@@ -34,7 +36,7 @@ PLANES_PER_SHAPE: dict[str, int] = {"planar": 2, "rectangular": 6, "cylindrical"
 # Table 2 (Sec. 5.8): 11 simple ("planar" in the paper's sense) and 23 non-planar objects. The
 # simple ones are the first objects of each shape of synthetic_ycb, so they look exactly alike there.
 TABLE2_SIMPLE: dict[str, int] = {"planar": 2, "rectangular": 5, "cylindrical": 4}
-CATALOGS = (*CATALOG_COMPOSITIONS, "ycb_table2")
+CATALOGS = SYNTHETIC_CATALOGS
 SUBSETS = ("planar", "nonplanar", "all")
 
 __all__ = [
@@ -62,7 +64,7 @@ class SyntheticCatalog:
         subset: "planar" (the simple shapes: planar, rectangular, cylindrical, as the paper's
             Sec. 5.8 calls them), "nonplanar" (bottles, mugs, ...; only "ycb" and "ycb_table2"
             have any) or "all" (simple objects first, then non-planar). The default keeps the
-            catalogs of DESIGN §4 (synthetic_ycb: 34 objects, 240 planes).
+            catalogs of ``docs/datasets.md`` (synthetic_ycb: 34 objects, 240 planes).
     """
 
     def __init__(
@@ -140,8 +142,6 @@ class SyntheticCatalog:
     def models(self) -> Iterator[ProductModel]:
         """The textured model of every object, in object order (for rendered views, which need the
         3D objects and not only their canonical images)."""
-        from matl.data.catalog.shapes import product_model
-
         for spec in self.products():
             yield product_model(spec, self.texture_px)
 

@@ -18,7 +18,7 @@ The first four take the cylinder's 10 canonical planes (top, bottom, 8 sides eve
 last two the box's 6. Each plane's extent is the silhouette's bounding box seen along it, measured
 symmetrically about the object centre (the origin, the centre of the object's bounding box), so a
 mug's handle stays inside the frame of every side view while the camera axis goes through the
-object's centre (DESIGN §2).
+object's centre (``docs/design.md``).
 """
 
 from __future__ import annotations

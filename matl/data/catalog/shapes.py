@@ -10,7 +10,6 @@ canonical view.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,21 +180,3 @@ def cylinder_model(spec: ProductSpec, texture_px: int, segments: int = 128) -> P
             )
         )
     return ProductModel(parts, planes)
-
-
-_BUILDERS: dict[str, Callable[[ProductSpec, int], ProductModel]] = {
-    "planar": box_model,
-    "rectangular": box_model,
-    "cylindrical": cylinder_model,
-}
-
-
-def product_model(spec: ProductSpec, texture_px: int = 512) -> ProductModel:
-    """Textured mesh parts and canonical planes of ``spec``; textures have ``texture_px`` on the
-    long side of each face (twice that for a cylinder's wrap-around label)."""
-    if spec.shape == "nonplanar":
-        from matl.data.catalog.nonplanar import nonplanar_model  # it builds on this module's parts
-
-        return nonplanar_model(spec, texture_px)
-    model = _BUILDERS[spec.shape](spec, texture_px)
-    return ProductModel(model.parts, model.planes, spec.name)

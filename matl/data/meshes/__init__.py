@@ -1,4 +1,4 @@
-"""The user's textured meshes as canonical sources: ``ycb``, ``apc``, ``arc``, ``meshes`` (DESIGN §4).
+"""The user's textured meshes as canonical sources: ``ycb``, ``apc``, ``arc``, ``meshes`` (``docs/datasets.md``).
 
 See :mod:`.sources` for the folder layouts, :mod:`.io` for loading (textures resolved relative to
 their ``.mtl``), :mod:`.frames` for object frames and planes from the oriented bounding box, and

@@ -1,4 +1,4 @@
-"""Canonical sources for the user's textured meshes: ``ycb``, ``apc``, ``arc`` and ``meshes`` (DESIGN §4).
+"""Canonical sources for the user's textured meshes: ``ycb``, ``apc``, ``arc`` and ``meshes`` (``docs/datasets.md``).
 
 Each source finds one mesh per object in its folder layout, reads a manifest for the objects'
 shape types, moves each mesh into its object frame (:mod:`.frames`), and renders the canonical
