@@ -1,29 +1,33 @@
 """Canonical images of every plane of every object, and their on-disk cache.
 
 A *canonical image* is the top-down view of one plane (camera axis perpendicular to it, through
-the object's centre; DESIGN section 2). Any dataset, procedural or from the user's disk, provides
+the object's centre; ``docs/design.md``). Any dataset, procedural or from the user's disk, provides
 its planes as a :class:`CanonicalSource`; :func:`load_canonical` builds a :class:`CanonicalSet`
-once and caches it under a key derived from the source's configuration.
+once and caches it under a key derived from the source's configuration. Mesh-based sources are
+also :class:`ModelSource` s: they hand out their 3D models, so views can be rendered from them.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import inspect
 import json
 import logging
-import os
-import tempfile
 import warnings
 import zipfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
+
+from matl.utils.errors import MatlError
+from matl.utils.io import atomic_savez
+
+if TYPE_CHECKING:
+    from matl.data.catalog.shapes import ProductModel
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +38,17 @@ _ARRAYS = ("images", "masks", "plane_object", "plane_names", "object_names", "ob
 
 ProgressFn = Callable[[int, int], None]
 """``progress(done, total)``, called by a source's build after each rendered unit of work."""
+
+
+def planes_of_objects(plane_object: np.ndarray, object_indices: Sequence[int] | np.ndarray | None) -> np.ndarray:
+    """(K,) int64 indices of the planes of the given objects, in the order given (each object's planes
+    in their own order): the planes :meth:`CanonicalSet.subset_objects` keeps. ``None``: every plane."""
+    if object_indices is None:
+        return np.arange(len(plane_object))
+    idx = [int(i) for i in np.asarray(object_indices, dtype=np.int64).reshape(-1)]
+    if not idx:
+        return np.zeros(0, np.int64)
+    return np.concatenate([np.flatnonzero(plane_object == i) for i in idx])
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,7 +123,7 @@ class CanonicalSet:
             raise ValueError(f"object indices must be unique, got {idx}")
         if any(i < 0 or i >= self.num_objects for i in idx):
             raise IndexError(f"object indices must be in [0, {self.num_objects}), got {idx}")
-        planes = np.concatenate([np.flatnonzero(self.plane_object == i) for i in idx]) if idx else np.zeros(0, np.int64)
+        planes = planes_of_objects(self.plane_object, idx)
         remap = np.full(self.num_objects, -1, dtype=np.int64)
         remap[idx] = np.arange(len(idx))
         return CanonicalSet(
@@ -138,6 +153,34 @@ class CanonicalSource(Protocol):
         ...
 
 
+@runtime_checkable
+class ModelSource(CanonicalSource, Protocol):
+    """A :class:`CanonicalSource` that can also hand out its 3D models (mesh-based sources).
+
+    ``models()`` yields one textured :class:`ProductModel` per object, in the object order of the
+    canonical set; ``fill`` and ``supersample`` are the canonical renders' framing and
+    antialiasing, which rendered views must share so their homographies refer to the same pixels.
+    """
+
+    fill: float
+    supersample: int
+
+    def models(self) -> Iterator[ProductModel]:
+        """Every object's textured model, in object order."""
+        ...
+
+
+def require_models(source: Any, what: str) -> ModelSource:
+    """``source`` if it can render views, else a one-line error naming ``what`` needed them."""
+    if not callable(getattr(source, "models", None)) or not hasattr(source, "fill"):
+        name = type(source).__name__
+        raise MatlError(
+            f"{what} needs 3D models, but the data source {name} has only images; use a mesh-based dataset "
+            "(synthetic_*, ycb, apc, arc, meshes) or the warped default"
+        )
+    return source
+
+
 def cache_path(source: CanonicalSource, image_size: int, cache_dir: str | Path) -> Path:
     """File the set of ``source`` at ``image_size`` is cached in (inside ``cache_dir``)."""
     return _path_for(_full_key(source, image_size), cache_dir)
@@ -153,30 +196,18 @@ def _path_for(key_json: str, cache_dir: str | Path) -> Path:
 
 
 def _save(cs: CanonicalSet, key_json: str, path: Path) -> None:
-    """Write ``cs`` to ``path`` atomically: a temp file in the same directory, then ``os.replace``
-    (atomic on POSIX and Windows within one filesystem), so readers never see a partial file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(
-                f,
-                images=cs.images,
-                masks=cs.masks,
-                plane_object=cs.plane_object,
-                plane_names=np.array(cs.plane_names, dtype=str),
-                object_names=np.array(cs.object_names, dtype=str),
-                object_shapes=np.array(cs.object_shapes, dtype=str),
-                key=np.array(key_json),
-            )
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a cache is meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    """Write ``cs`` to ``path`` atomically (:func:`matl.utils.io.atomic_savez`): readers never see
+    a partial file."""
+    atomic_savez(
+        path,
+        images=cs.images,
+        masks=cs.masks,
+        plane_object=cs.plane_object,
+        plane_names=np.array(cs.plane_names, dtype=str),
+        object_names=np.array(cs.object_names, dtype=str),
+        object_shapes=np.array(cs.object_shapes, dtype=str),
+        key=np.array(key_json),
+    )
 
 
 def _load(path: Path, key_json: str) -> CanonicalSet:

@@ -1,18 +1,22 @@
-"""Triplets and queries made from canonical images by random homographies (paper Sec. 5.1).
+"""The datamodule: multiple-anchor training triplets, labelled queries and the gallery of anchors.
 
 Design: the datasets hold only *parameters* (plane indices and homographies), sampled once in
-``setup`` from seeded generators; images are made per batch in ``materialize`` with one batched
-warp, after the batch reaches its device (``on_after_batch_transfer``). So data making is a few
-tensor ops per step, never a per-image Python loop, and runs on the GPU when there is one.
+``setup`` from seeded generators; images are made per batch in ``materialize``, after the batch
+reaches its device (``on_after_batch_transfer``). So data making is a few tensor ops per step,
+never a per-image Python loop, and runs on the GPU when there is one.
+
+What the parameters are and how their images are made is the query source's
+(:mod:`matl.data.queries`: canonical images warped by random homographies, the paper's Sec. 5.1, or
+rendered views); how the anchors are made is the anchor acquisition's (:mod:`matl.data.anchors`).
 
 Splits: the ``seed`` selects the training triplets, validation queries and test queries, each
-from its own random stream; test queries are disjoint from training by construction.
+from its own random stream (:func:`matl.data.streams.stream_generator`); test queries are disjoint
+from training by construction.
 """
 
 from __future__ import annotations
 
 import functools
-import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +27,13 @@ from torch.utils.data import DataLoader, Dataset
 from matl.data.anchors import FixedAnchors
 from matl.data.canonical import CanonicalSet, CanonicalSource, load_canonical
 from matl.data.gallery import Gallery
+from matl.data.queries import QuerySource, make_query_source
 from matl.data.resumable import ResumableShuffleSampler, resume_position
+from matl.data.streams import stream_generator
 from matl.geometry import HomographySampler, warp_image
 from matl.utils.distributed import eval_sampler
 
 Batch = dict[str, torch.Tensor]
-
-
-def stream_generator(seed: int, stream: str) -> torch.Generator:
-    """An independent generator per (seed, stream), so splits never share random numbers."""
-    digest = hashlib.sha256(f"{seed}/{stream}".encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
 
 
 class ParamsDataset(Dataset):
@@ -77,16 +77,16 @@ class TripletDataModule(L.LightningDataModule):
         source: what provides the canonical images (a :class:`CanonicalSource`).
         image_size: model image side in pixels (paper: 100).
         num_anchors: N anchors per plane.
-        homography: sampler for positives, negatives and queries.
-        anchors: anchor acquisition (fixed rotations by default).
+        homography: sampler of the random homographies of warped positives, negatives and queries.
+        anchors: anchor acquisition (:mod:`matl.data.anchors`; fixed rotations by default).
         train_triplets / val_queries / test_queries: sizes of the splits.
         batch_size / eval_batch_size: loader batch sizes.
         seed: selects the split.
         cache_dir: where canonical images are cached.
         objects: optional list of object indices to keep (e.g. a planar / non-planar split).
-        queries: "warped" (default, the paper's) or "rendered"; anything else than "warped" is a
-            :class:`matl.data.views.QuerySource` this module delegates query sampling and image
-            making to (see ``docs/datasets.md``).
+        queries: "warped" (default, the paper's), "rendered", or a
+            :class:`matl.data.queries.QuerySource`: what this module delegates query sampling and
+            image making to (:func:`matl.data.queries.make_query_source`, ``docs/datasets.md``).
         views: options of the rendered view pool (``data.views``), used when ``queries="rendered"``.
     """
 
@@ -110,7 +110,6 @@ class TripletDataModule(L.LightningDataModule):
         self.cache_dir = Path(cache_dir)
         self.objects = objects
         self.queries, self.views = queries, views
-        self.query_source: Any = None
         self._ready = False
 
     # ------------------------------------------------------------------ setup
@@ -151,40 +150,14 @@ class TripletDataModule(L.LightningDataModule):
             object_names=list(canonical.object_names),
             plane_names=list(canonical.plane_names),
         )
-        if self.queries not in (None, "warped"):  # rendered queries: a QuerySource samples and makes them
-            from matl.data.views import make_query_source
-
-            self.query_source = make_query_source(self.queries, self.views)
-            self.query_source.setup(self)
-        self.train_set = ParamsDataset(self._sample_triplets(self.train_triplets, "train"))
-        self.val_set = ParamsDataset(self._sample_queries(self.val_queries, "val"))
-        self.test_set = ParamsDataset(self._sample_queries(self.test_queries, "test"))
-        self._device_cache: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.query_source: QuerySource = make_query_source(self.queries, self.views, self.homography)
+        self.query_source.setup(self)
+        sample, stream = self.query_source, functools.partial(stream_generator, self.seed)
+        self.train_set = ParamsDataset(sample.sample_triplets(self.train_triplets, "train", stream("train")))
+        self.val_set = ParamsDataset(sample.sample_queries(self.val_queries, "val", stream("val")))
+        self.test_set = ParamsDataset(sample.sample_queries(self.test_queries, "test", stream("test")))
+        self._device_anchors: dict[torch.device, torch.Tensor] = {}
         self._ready = True
-
-    def _sample_queries(self, n: int, stream: str) -> dict[str, torch.Tensor]:
-        g = stream_generator(self.seed, stream)
-        if self.query_source is not None:
-            return self.query_source.sample_queries(n, stream, g)
-        plane = torch.randint(len(self.plane_object), (n,), generator=g)
-        H = self.homography.sample(n, self.size, g, self.footprints[plane])
-        return {"plane": plane, "object": self.plane_object[plane], "query_H_canon": H.float()}
-
-    def _sample_triplets(self, n: int, stream: str) -> dict[str, torch.Tensor]:
-        g = stream_generator(self.seed, stream)
-        if self.query_source is not None:
-            return self.query_source.sample_triplets(n, stream, g)
-        params = self._sample_queries(n, stream)
-        if self.canonical.num_objects < 2:
-            raise ValueError("triplets need at least 2 objects (negatives come from other objects)")
-        neg_plane = torch.randint(len(self.plane_object), (n,), generator=g)
-        clash = self.plane_object[neg_plane] == params["object"]
-        while clash.any():  # resample the few negatives that hit the positive's object
-            neg_plane[clash] = torch.randint(len(self.plane_object), (int(clash.sum()),), generator=g)
-            clash = self.plane_object[neg_plane] == params["object"]
-        neg_H = self.homography.sample(n, self.size, g, self.footprints[neg_plane])
-        params.update(neg_plane=neg_plane, neg_object=self.plane_object[neg_plane], neg_H_canon=neg_H.float())
-        return params
 
     # -------------------------------------------------------------- loaders
     def train_dataloader(self) -> DataLoader:
@@ -210,34 +183,22 @@ class TripletDataModule(L.LightningDataModule):
                           generator=stream_generator(self.seed, "loader"))
 
     # ------------------------------------------------------------ materialise
-    def _on_device(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        if device not in self._device_cache:
-            self._device_cache[device] = (self.canon_images.to(device), self.anchor_images.to(device))
-        return self._device_cache[device]
+    def _anchors_on(self, device: torch.device) -> torch.Tensor:
+        if device not in self._device_anchors:
+            self._device_anchors[device] = self.anchor_images.to(device)
+        return self._device_anchors[device]
 
     def materialize(self, batch: Batch) -> Batch:
-        """Turn a batch of parameters into images with batched warps (on the batch's device).
+        """Turn a batch of parameters into images (on the batch's device), by the query source.
 
         Adds ``query`` ``(B, 3, S, S)`` to query batches; ``positive``, ``negative`` and
         ``anchors`` ``(B, N, 3, S, S)`` to triplet batches.
         """
         if "query" in batch or "positive" in batch:
             return batch
-        device = batch["plane"].device
-        canon, anchors = self._on_device(device)
-        if self.query_source is not None:  # images come from the query source (e.g. pre-rendered views)
-            out = self.query_source.materialize(batch)
-            if "neg_plane" in batch:
-                out["anchors"] = anchors[batch["plane"]]
-            return out
-        out = dict(batch)
+        out = self.query_source.materialize(batch)
         if "neg_plane" in batch:
-            both = torch.cat([canon[batch["plane"]], canon[batch["neg_plane"]]])
-            H = torch.cat([batch["query_H_canon"], batch["neg_H_canon"]])
-            positive, negative = warp_image(both, H).chunk(2)
-            out.update(positive=positive, negative=negative, anchors=anchors[batch["plane"]])
-        else:
-            out["query"] = warp_image(canon[batch["plane"]], batch["query_H_canon"])
+            out["anchors"] = self._anchors_on(batch["plane"].device)[batch["plane"]]
         return out
 
     def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:

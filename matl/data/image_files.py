@@ -16,7 +16,7 @@ Convention:
       which would be the right one only for a resize done that way; we compute the matrix of the
       resize we actually do. Padding then adds an integer translation.
     * Images are RGB in [0, 1]; transparent pixels become background 0 (RGB multiplied by alpha), as
-      the foreground-segmented training images (DESIGN §2). EXIF orientation is applied, as
+      the foreground-segmented training images (``docs/design.md``). EXIF orientation is applied, as
       ``cv2.imread`` does, so coordinates refer to the image as displayed.
 
 Files that cannot be used (not an image, empty, unreadable) raise :class:`ImageFileError` with a
@@ -38,18 +38,23 @@ from matl.utils.errors import MatlError
 
 log = logging.getLogger(__name__)
 
-GALLERY_SUFFIXES = (".png", ".jpg", ".jpeg")  # DESIGN §4 `images` layout: <root>/<object>/<plane>.png (or .jpg)
+GALLERY_SUFFIXES = (".png", ".jpg", ".jpeg")  # the `images` layout: <root>/<object>/<plane>.png (or .jpg)
 
 
 class ImageFileError(MatlError):
     """One file cannot be used as an image; the message names the file and why."""
 
 
-def load_image_file(path: str | Path) -> np.ndarray:
-    """Read an image file as RGB float32 ``(H, W, 3)`` in [0, 1], transparent pixels set to 0.
+def read_rgba(path: str | Path, min_side: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read an image file: RGB float32 ``(H, W, 3)`` in [0, 1] and its alpha ``(H, W)`` in [0, 1], or
+    None without an alpha channel. EXIF orientation is applied; 16-bit and 32-bit grey images are
+    scaled by their bit depth (:func:`_high_depth_grey`), not clipped.
+
+    The one image reader of matl: :func:`load_image_file` (predict, score, unseen) and the
+    ``images`` dataset (:mod:`matl.data.photos`) both read through it.
 
     Raises:
-        ImageFileError: missing, empty, not an image, or undecodable.
+        ImageFileError: missing, empty, not an image, undecodable, or with a side below ``min_side``.
     """
     path = Path(path)
     if not path.is_file():
@@ -69,11 +74,21 @@ def load_image_file(path: str | Path) -> np.ndarray:
     except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as error:
         reason = "not an image" if isinstance(error, UnidentifiedImageError) else " ".join(str(error).split())
         raise ImageFileError(f"{path}: {reason}") from error
-    if rgba.ndim != 3 or rgba.shape[0] == 0 or rgba.shape[1] == 0:
+    if rgba.ndim != 3 or rgba.shape[0] < min_side or rgba.shape[1] < min_side:
         raise ImageFileError(f"{path}: image has no pixels")
-    if has_alpha:
-        return np.ascontiguousarray(rgba[..., :3] * rgba[..., 3:4])
-    return np.ascontiguousarray(rgba)
+    return (rgba[..., :3], rgba[..., 3]) if has_alpha else (rgba, None)
+
+
+def load_image_file(path: str | Path) -> np.ndarray:
+    """Read an image file as RGB float32 ``(H, W, 3)`` in [0, 1], transparent pixels set to 0.
+
+    Raises:
+        ImageFileError: missing, empty, not an image, or undecodable.
+    """
+    rgb, alpha = read_rgba(path)
+    if alpha is not None:
+        return np.ascontiguousarray(rgb * alpha[..., None])
+    return np.ascontiguousarray(rgb)
 
 
 def _high_depth_grey(values: np.ndarray) -> np.ndarray:
@@ -216,7 +231,7 @@ class GalleryFiles:
 
 
 def scan_gallery(root: str | Path) -> GalleryFiles:
-    """List ``<root>/<object>/<plane>.{png,jpg,jpeg}`` (DESIGN §4 ``images`` layout).
+    """List ``<root>/<object>/<plane>.{png,jpg,jpeg}`` (the ``images`` layout, ``docs/datasets.md``).
 
     Other files and sub-folders are recorded in ``skipped`` with the reason (photographed-anchor
     folders ``<object>/<plane>/<k>.png`` are not used: predict makes anchors by rotation). Files are

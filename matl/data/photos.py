@@ -1,6 +1,6 @@
 """``data=images``: canonical images from the user's photos (or renders) of each plane.
 
-Layout (DESIGN §4)::
+Layout (``docs/datasets.md``)::
 
     <root>/<object>/<plane>.png            one canonical photo per plane (any image format)
     <root>/<object>/<plane>/<k>.png        N photographed anchors of a plane
@@ -32,9 +32,10 @@ not measured, so:
   "query from anchor k's photo", not from the canonical image. Use it for recognition, or for poses
   when you know which anchor was chosen (``predict`` reports it).
 
-Anchors come from :class:`PhotoAnchors` (the ``images`` data config selects it); planes without
-a plane folder get the ``fallback`` acquisition (the top-level ``anchors``, fixed rotations by
-default).
+Anchors come from :class:`matl.data.anchors.PhotoAnchors` (the ``images`` data config selects
+it); planes without a plane folder get the ``fallback`` acquisition (the top-level ``anchors``,
+fixed rotations by default). Files are read by :func:`matl.data.image_files.read_rgba`, the reader
+``matl.predict`` uses too (16-bit grey images included).
 """
 
 from __future__ import annotations
@@ -44,48 +45,24 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import Image
 from scipy import ndimage
 
-from matl.data.anchors import FixedAnchors
+from matl.data.anchors import PhotoAnchors  # noqa: F401  (the _target_ of run configs saved before it moved)
 from matl.data.canonical import CanonicalSet, ProgressFn
-from matl.data.image_files import ImageFileError
+from matl.data.image_files import ImageFileError, read_rgba
 from matl.data.meshes.manifest import Manifest
-from matl.geometry import centre_rotation, warp_image
+from matl.geometry import centre_rotation
 from matl.utils.errors import MatlError
-
-if TYPE_CHECKING:
-    from matl.data.datamodule import TripletDataModule
 
 log = logging.getLogger(__name__)
 
 PHOTO_SOURCE_VERSION = 1
 ANCHOR_NAMES = ("index", "angle")
-
-
-def read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """RGB float32 (H, W, 3) in [0, 1] and alpha (H, W) in [0, 1] or None; EXIF orientation applied.
-
-    Raises:
-        ImageFileError: empty, unreadable or not an image (message names the file).
-    """
-    if path.stat().st_size == 0:
-        raise ImageFileError(f"{path}: empty file (0 bytes)")
-    try:
-        with Image.open(path) as im:
-            im = ImageOps.exif_transpose(im)
-            has_alpha = im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
-            arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as e:
-        reason = "not an image" if isinstance(e, UnidentifiedImageError) else " ".join(str(e).split())
-        raise ImageFileError(f"{path}: {reason}") from e
-    if arr.ndim != 3 or arr.shape[0] < 2 or arr.shape[1] < 2:
-        raise ImageFileError(f"{path}: image has no pixels")
-    return (arr[..., :3], arr[..., 3]) if has_alpha else (arr, None)
 
 
 @dataclass(frozen=True)
@@ -269,7 +246,7 @@ class ImageFolderSource:
 
     # ------------------------------------------------------------------------------------ images
     def _load(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
-        rgb, alpha = read_rgba(path)
+        rgb, alpha = read_rgba(path, min_side=2)
         return rgb, object_mask(path, rgb, alpha, self.segmentation)
 
     def _canonical(self, path: Path, size: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
@@ -332,60 +309,3 @@ class ImageFolderSource:
                 Hs.append(H)
             out.append((np.stack(images), np.stack(Hs)))
         return out
-
-
-def plane_indices_of(plane_object: np.ndarray, objects: list[int] | None) -> np.ndarray:
-    """Indices into a full canonical set of the planes kept by ``CanonicalSet.subset_objects(objects)``."""
-    if objects is None:
-        return np.arange(len(plane_object))
-    return np.concatenate([np.flatnonzero(plane_object == int(o)) for o in objects])
-
-
-class PhotoAnchors:
-    """Anchors of the ``images`` dataset: a plane's photographed anchors where it has a plane
-    folder, the ``fallback`` acquisition (default: fixed rotations) for the other planes.
-
-    Args:
-        fallback: an anchor acquisition (the top-level ``anchors``) for planes without photos.
-    """
-
-    def __init__(self, fallback: Any = None) -> None:
-        self.fallback = fallback or FixedAnchors()
-
-    def __call__(self, *args: Any, **kwargs: Any) -> torch.Tensor:
-        raise MatlError("PhotoAnchors makes anchor images from photos: the datamodule must call its build_anchors")
-
-    def build_anchors(self, dm: TripletDataModule, num_anchors: int,
-                      generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """``anchor_H_canon`` (P, N, 3, 3) float64 and anchor images (P, N, 3, S, S) float32."""
-        P, size = dm.canonical.num_planes, (dm.image_size, dm.image_size)
-        if hasattr(self.fallback, "build_anchors"):
-            H, images = self.fallback.build_anchors(dm, num_anchors, generator)
-        else:
-            H = self.fallback(P, num_anchors, size, generator, dm.footprints).double()
-            src = dm.canon_images.repeat_interleave(num_anchors, dim=0)
-            images = warp_image(src, H.reshape(-1, 3, 3)).reshape(P, num_anchors, 3, *size)
-        photos_of = getattr(dm.source, "anchor_photos", None)
-        if photos_of is None:
-            return H, images
-        photos = photos_of(dm.image_size)
-        # dm.canonical may be a subset of objects (data.objects): map its planes back to the source's.
-        keep = plane_indices_of(self._full_plane_object(dm), dm.objects)
-        H, images = H.clone(), images.clone()
-        for p, full in enumerate(keep):
-            photo = photos[int(full)]
-            if photo is None:
-                continue
-            imgs, Hs = photo
-            if len(imgs) != num_anchors:
-                raise MatlError(f"{dm.canonical.plane_label(p)} has {len(imgs)} photographed anchors but "
-                                f"N={num_anchors}: set N={len(imgs)} or give it as many photos")  # fmt: skip
-            images[p] = torch.from_numpy(imgs).permute(0, 3, 1, 2).float().div(255.0)
-            H[p] = torch.from_numpy(Hs)
-        return H, images
-
-    @staticmethod
-    def _full_plane_object(dm: TripletDataModule) -> np.ndarray:
-        planes = dm.source.planes()
-        objects = list(dict.fromkeys(p.object for p in planes))
-        return np.array([objects.index(p.object) for p in planes], dtype=np.int64)

@@ -360,13 +360,7 @@ def measure_render(cfg: DictConfig, options: DictConfig) -> tuple[float | None, 
     """Canonical renders per second of ``data.source`` (None with a reason when it cannot render)."""
     if not options.render:
         return None, {"skipped": "bench.render=false"}
-    try:
-        from matl.data.views import render_images_per_s
-    except ImportError:
-        try:
-            from matl.data.catalog.rendering import render_images_per_s  # type: ignore[no-redef]
-        except ImportError:
-            return None, {"skipped": "no render_images_per_s in this version of matl"}
+    from matl.data.render_speed import render_images_per_s
     source = instantiate_node(cfg.data.source, "data.source")
     if not hasattr(source, "models"):
         return None, {"skipped": f"{type(source).__name__} has no meshes to render (photographed canonical images)"}

@@ -2,34 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-from matl.data.canonical import CanonicalSet
-from matl.data.datamodule import TripletDataModule, footprints_from_masks, stream_generator
+from matl.data.datamodule import TripletDataModule, footprints_from_masks
 from matl.geometry import transfer_points
-
-
-class PatternSource:
-    """A fast in-memory source: 6 objects x 2 planes of random blocks (no rendering)."""
-
-    def __init__(self, size_hint: int = 0) -> None:
-        self.size_hint = size_hint
-
-    def cache_key(self) -> dict:
-        return {"kind": "pattern-test"}
-
-    def build(self, image_size: int, progress=None) -> CanonicalSet:
-        rng = np.random.default_rng(0)
-        S, P = image_size, 12
-        images = np.zeros((P, S, S, 3), np.uint8)
-        masks = np.zeros((P, S, S), bool)
-        lo, hi = S // 4, 3 * S // 4
-        for p in range(P):
-            images[p, lo:hi, lo:hi] = rng.integers(20, 255, (hi - lo, hi - lo, 3))
-            masks[p, lo:hi, lo:hi] = True
-        return CanonicalSet(images, masks, np.repeat(np.arange(6), 2).astype(np.int64),
-                            [f"p{i % 2}" for i in range(P)], [f"o{i}" for i in range(6)], ["planar"] * 6)
+from tests.data.conftest import PatternSource
 
 
 def make_dm(tmp_path, seed: int = 0, N: int = 4) -> TripletDataModule:
@@ -73,9 +50,3 @@ def test_splits_are_seeded_and_disjoint(tmp_path) -> None:
     train_H = a.train_set.params["query_H_canon"].reshape(-1, 9)
     test_H = a.test_set.params["query_H_canon"].reshape(-1, 9)
     assert torch.cdist(test_H, train_H).min() > 1e-3  # no test query repeats a training one
-
-
-def test_stream_generators_independent() -> None:
-    x = torch.rand(4, generator=stream_generator(0, "train"))
-    y = torch.rand(4, generator=stream_generator(0, "test"))
-    assert not torch.equal(x, y)

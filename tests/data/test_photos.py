@@ -9,9 +9,10 @@ import pytest
 import torch
 from PIL import Image, ImageDraw
 
+from matl.data.anchors import PhotoAnchors
 from matl.data.datamodule import TripletDataModule
 from matl.data.image_files import ImageFileError
-from matl.data.photos import ImageFolderSource, PhotoAnchors, Segmentation, segment_foreground
+from matl.data.photos import ImageFolderSource, Segmentation, segment_foreground
 from matl.geometry import centre_rotation
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
@@ -143,5 +144,21 @@ def test_bad_files_are_one_line_errors(tmp_path: Path) -> None:
 
 def test_images_config_uses_photo_anchors(tmp_path: Path) -> None:
     cfg = compose_config("train", ["data=images", f"data.source.root={make_root(tmp_path)}"])
-    assert cfg.data.anchors._target_ == "matl.data.photos.PhotoAnchors"
+    assert cfg.data.anchors._target_ == "matl.data.anchors.PhotoAnchors"
     assert cfg.data.anchors.fallback._target_ == "matl.data.anchors.FixedAnchors"
+
+
+def test_16_bit_grey_photos_keep_their_levels(tmp_path: Path) -> None:
+    """A 16-bit grey PNG is scaled by 65535 (PIL's own conversion to RGB would clip it to white)."""
+    rng = np.random.default_rng(0)
+    grey = np.full((120, 160), 20000.0) + rng.normal(0, 150, (120, 160))  # background at 0.31 of full scale
+    grey[30:95, 40:110] = 50000.0  # the object at 0.76
+    grey[45:52, 50:100] = 20000.0  # a background-coloured stripe inside it (a hole the segmentation fills)
+    (tmp_path / "photos" / "card").mkdir(parents=True)
+    Image.fromarray(np.clip(grey, 0, 65535).astype(np.uint16)).save(tmp_path / "photos" / "card" / "front.png")
+    assert Image.open(tmp_path / "photos" / "card" / "front.png").mode.startswith("I")
+    cs = ImageFolderSource(tmp_path / "photos").build(SIZE)
+    inside = cs.images[0][cs.masks[0]].astype(float)
+    assert 0.28 < cs.masks[0].mean() < 0.4  # the 70 x 65 px card framed to 0.6 of the image: 19 x 18 of 32 x 32
+    assert np.allclose(np.median(inside, axis=0), 50000 / 65535 * 255, atol=3)  # grey, not clipped to 255
+    assert not cs.images[0][~cs.masks[0]].any()
