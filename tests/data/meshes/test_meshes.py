@@ -6,6 +6,7 @@ OBJ + MTL, or PLY with vertex colours); nothing is downloaded.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -275,7 +276,8 @@ def test_ycb_layout_manifest_and_guess(ycb_root: Path, tmp_path: Path, caplog: p
 
 
 def test_mesh_source_renders_views_too(ycb_root: Path, tmp_path: Path) -> None:
-    from matl.data.views import ViewSampler, load_view_pool
+    from matl.data.view_pool import load_view_pool
+    from matl.data.view_sampler import ViewSampler
 
     source = YCBSource(ycb_root, manifest="ycb", only_manifest=True, subset="planar")
     pool = load_view_pool(source, SIZE, 2, ViewSampler(), 0, tmp_path / "cache")
@@ -348,3 +350,18 @@ def test_render_cli_reports_mesh_problems_in_one_line(ycb_root: Path, tmp_path: 
     assert unset.returncode == 2 and unset.stderr.strip() == (
         "error: data.source.root is not set: pass data.source.root=<path> (see docs/datasets.md)"
     ), unset.stderr[-2000:]
+
+
+def test_render_cli_previews_views_and_measures_speed(tmp_path: Path) -> None:
+    """``python -m matl.render data=meshes ... views=1 speed=true``: gallery.png, views.png and speed.json."""
+    folder = tmp_path / "mine"
+    write_obj(textured_box((5, 5, 9), 8), folder / "cube_thing.obj")
+    (folder / "manifest.csv").write_text("object,shape\ncube_thing,rectangular\n")
+    out = _render(["data=meshes", f"data.source.root={folder}", f"data.source.manifest={folder / 'manifest.csv'}",
+                   "views=1", "speed=true", "speed_objects=1", "speed_views=2"], tmp_path)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    run = tmp_path / "run"
+    assert (run / "gallery.png").is_file() and (run / "views.png").is_file()
+    speed = json.loads((run / "speed.json").read_text())
+    assert speed["image_size"] == 24 and speed["canonical"]["images"] == 6 and speed["views"]["images"] == 12
+    assert speed["canonical"]["images_per_s"] > 0
