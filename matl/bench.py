@@ -1,6 +1,6 @@
 """``python -m matl.bench [bench.quick=true] [ckpt=<path>] [overrides]``: speed, measured against a reference.
 
-DESIGN §6: speed is measured against a reference measured *in the same run* on the same machine
+Speed is measured against a reference measured *in the same run* on the same machine
 (here SIFT+RANSAC on the same queries), never against a remembered absolute time. One run writes
 ``bench.json`` in its folder (``outputs/bench/<time>/``) and prints a summary table:
 

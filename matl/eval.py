@@ -12,7 +12,7 @@ defaults are never re-composed, so later edits of ``conf/`` cannot change what a
   evaluator on the *same* queries (pose = ``query_H_anchor @ anchor_H_canon`` of the matched gallery
   image); ``run=`` is then optional (``data=``, ``seed=`` and ``N=`` pick the queries).
 
-Writes ``eval.json`` (DESIGN §3 metric names plus what was evaluated) and ``per_query.csv`` into its
+Writes ``eval.json`` (metric names of docs/design.md plus what was evaluated) and ``per_query.csv`` into its
 own run folder ``outputs/eval/<time>/``.
 """
 

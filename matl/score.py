@@ -1,6 +1,6 @@
 """``python -m matl.score predictions=<file.jsonl> truth=<file.jsonl> (ckpt=<path> | image_size=<S>)``.
 
-Scores the JSON lines of ``matl.predict`` against a ground-truth sidecar with the DESIGN §3 metrics,
+Scores the JSON lines of ``matl.predict`` against a ground-truth sidecar with the the metrics of docs/design.md,
 for any gallery and query folder: the synthetic never-seen-products measurement of ``matl.unseen``
 writes such a sidecar, and so can a robotics engineer who knows what is in their own camera crops.
 
@@ -16,9 +16,9 @@ matched to the truth by file (``image`` resolved against the current folder, els
 sidecar's folder, else by a unique file name); a query without a prediction (a file predict skipped)
 counts as not recognised.
 
-Metrics (DESIGN §3): ``rec_acc`` (object correct), ``plane_acc`` (object and plane correct), and on
+Metrics (docs/design.md): ``rec_acc`` (object correct), ``plane_acc`` (object and plane correct), and on
 the recognised queries ``pose_err``, ``corner_err_px`` (mean), ``corner_err_px_median``, plus
-``pose_acc_5px`` over all queries. Poses are compared at *model* resolution, as DESIGN §3 defines
+``pose_acc_5px`` over all queries. Poses are compared at *model* resolution, as docs/design.md defines
 them: both file-pixel ``H`` are taken into the model frame with the resize-and-pad predict applies
 (:func:`matl.data.image_files.fit_geometry` with ``gallery_fill`` / ``query_fill``, which must be the
 values predict ran with), ``model_H = query_model_H_file @ H @ inv(gallery_model_H_file)``. Writes

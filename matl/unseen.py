@@ -8,7 +8,7 @@ user-facing path, ``matl.predict`` with a gallery enrolled from image files (pap
    the checkpoint's training catalog also holds is dropped (:func:`seen_products`: same name, or same
    brand and title, i.e. the same product printed again); products that only share a title with
    another brand, or a brand and a kind, stay and are listed as ``related``.
-2. *Gallery*: ``<out>/gallery/<object>/<plane>.png`` (DESIGN §4 ``images`` layout). The files are the
+2. *Gallery*: ``<out>/gallery/<object>/<plane>.png`` (the ``images`` layout of docs/datasets.md). The files are the
    catalog's full canonical frames, in which each plane spans 0.6 of the side as in training, so
    predict runs with ``gallery_fill=1.0``; with ``gallery_crop=true`` they are tight crops of the
    plane (its mask's bounding box) enrolled with ``gallery_fill=0.6``, which frames them the same way.
@@ -19,7 +19,7 @@ user-facing path, ``matl.predict`` with a gallery enrolled from image files (pap
 4. ``python -m matl.predict ckpt=... gallery=... images=... out=<out>/predictions.jsonl`` (a separate
    process: exactly the command a user runs), then :func:`matl.score.score_files`.
 
-Writes ``<out>/unseen.json`` (DESIGN §3 metrics, ``plane_acc``, the products, what was excluded and
+Writes ``<out>/unseen.json`` (the metrics of docs/design.md, ``plane_acc``, the products, what was excluded and
 why, per-object accuracy, the most frequent confusions and the commands used) and
 ``<out>/per_query.csv``.
 """

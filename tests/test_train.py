@@ -1,4 +1,4 @@
-"""A tiny end-to-end run: train -> test the best checkpoint -> metrics.json with DESIGN §3 names."""
+"""A tiny end-to-end run: train -> test the best checkpoint -> metrics.json with the metric names of docs/design.md."""
 
 from __future__ import annotations
 

@@ -136,7 +136,7 @@ def run_queries(predict: Callable[[torch.Tensor], Prediction], datamodule: Any, 
     """Evaluate ``predict`` on the datamodule's test split, batched as in ``trainer.test``.
 
     Returns:
-        DESIGN §3 accuracy metrics (NaN where undefined), per-query rows, and the number of queries
+        the accuracy metrics of docs/design.md (NaN where undefined), per-query rows, and the number of queries
         whose STN output was degenerate (replaced by identity).
     """
     metrics = pose_metrics(datamodule.image_size).to(device)

@@ -169,7 +169,7 @@ def _number(value: torch.Tensor | float) -> float | None:
 def score(truth: list[Truth], predictions: list[dict[str, Any] | None], image_size: int,
           gallery_fill: float = 1.0, query_fill: float = 1.0, truth_base: Path | None = None,
           top_confusions: int = 10) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """DESIGN §3 metrics of matched predictions (see :func:`match_predictions`).
+    """the metrics of docs/design.md of matched predictions (see :func:`match_predictions`).
 
     Args:
         truth_base: the sidecar's folder (to find a relative ``gallery_image`` of a prediction).

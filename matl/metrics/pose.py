@@ -1,4 +1,4 @@
-"""Recognition and pose metrics with the binding names of DESIGN §3, as torchmetrics metrics.
+"""Recognition and pose metrics with the binding names of docs/design.md, as torchmetrics metrics.
 
 Every metric takes the same ``update(pred_object, true_object, est_query_H_canon, true_query_H_canon)``
 (``est_query_H_canon=None`` for recognition-only models, whose pose metrics are then NaN) and

@@ -2,7 +2,7 @@
 
 A subclass provides ``build_recognizer(gallery)`` (anything that maps a query batch to a
 :class:`~matl.inference.recognizer.Prediction`) and its training step; validation and test then run
-the DESIGN §3 metrics the same way for every model, so their numbers are comparable.
+the metrics of docs/design.md the same way for every model, so their numbers are comparable.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class PoseEvaluationModule(L.LightningModule):
         num_anchors: N anchors per plane in the evaluation gallery.
         optimizer / scheduler: partially-instantiated torch optimiser / LR scheduler factories.
         score_weights: ``{metric: weight}`` of ``val/score``, the checkpoint-selection score
-            (DESIGN §3 metric names without prefix; default: rec_acc + pose_acc_5px).
+            (metric names of docs/design.md without prefix; default: rec_acc + pose_acc_5px).
     """
 
     def __init__(self, image_size: int, num_anchors: int,
@@ -57,7 +57,7 @@ class PoseEvaluationModule(L.LightningModule):
         self.val_metrics = pose_metrics(self.image_size, "val/")
         self.test_metrics = pose_metrics(self.image_size, "test/")
         self.score_weights = dict(DEFAULT_SCORE_WEIGHTS if score_weights is None else score_weights)
-        known = [name.removeprefix("val/") for name in self.val_metrics]  # the DESIGN §3 metric names
+        known = [name.removeprefix("val/") for name in self.val_metrics]  # the metric names of docs/design.md
         unknown = sorted(set(self.score_weights) - set(known))
         if unknown or not self.score_weights:
             raise ValueError(f"model.score_weights: unknown or no metric {unknown}; use some of {known}")

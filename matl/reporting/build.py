@@ -71,7 +71,7 @@ def build_report(dirs: Sequence[Path], out: Path, fig5: Sequence[Path] | None = 
     lines = ["# matl report", "", "Sources: " + (", ".join(f"`{d}`" for d in dirs) or "none"), "",
              "Cells: mean ± sample std over seeds, (k) = number of seeds; — = no run; "
              "(paper) = the paper's Table 1 / Table 2. Our datasets are the synthetic stand-ins of "
-             "DESIGN §4 unless the run used the real meshes; absolute numbers are not expected to match "
+             "docs/datasets.md unless the run used the real meshes; absolute numbers are not expected to match "
              "the paper's, the ordering of the rows is what the reproduction checks.", ""]
     for setting in settings_of(groups):
         cells1 = table1_cells(groups, setting)

@@ -7,7 +7,7 @@
   returns NaN, which the basic sweeper ignores and Optuna records as a failed trial.
 * :func:`auto_resume`: ``resume=auto`` continues a job in its own folder: ``metrics.json`` present
   -> the job is complete and is skipped; ``checkpoints/last.ckpt`` present -> training resumes
-  from it (helper-5's exact resume: :class:`matl.models.checkpoint.AtomicModelCheckpoint`); else
+  from it (exact resume: :class:`matl.models.checkpoint.AtomicModelCheckpoint`); else
   it starts fresh. Re-running a sweep with the same ``hydra.sweep.dir`` gives each job the same
   folder (``<sweep dir>/<job num>``), so an interrupted sweep finishes only what is missing; a
   SLURM job requeued after a timeout does the same.

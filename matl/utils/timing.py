@@ -26,7 +26,7 @@ def torch_threads(threads: int | None) -> Iterator[None]:
 @torch.no_grad()
 def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, warmup: int = 5,
                     threads: int | None = None) -> float:
-    """Median milliseconds of ``predict`` on one query at a time (DESIGN §3 ``query_ms``: batch of 1).
+    """Median milliseconds of ``predict`` on one query at a time (docs/design.md ``query_ms``: batch of 1).
 
     The timed region is the ``predict`` call alone (wall clock), the same for every method.
 
