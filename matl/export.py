@@ -9,7 +9,8 @@ Writes two self-contained modules and a description into ``out``:
   largest difference between exported and eager outputs measured right after export.
 
 Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
-``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md, "Homographies and their frames"), a few lines in any runtime.
+``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md, "Homographies and their
+frames"), a few lines in any runtime.
 
 Formats: ``torchscript`` (default; ``torch.jit.load`` in Python or libtorch in C++, no matl or kornia
 needed) or ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``; dynamic batch).

@@ -126,7 +126,7 @@ def _write_cache(path: Path, payload: dict[str, Any]) -> None:
 
 def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: list[str],
                   object_names: list[str], num_anchors: int) -> Gallery:
-    """The ``P * N`` fixed anchors (docs/design.md, "Homographies and their frames") of the canonical images, flattened plane-major."""
+    """The ``P * N`` fixed anchors of the canonical images (docs/design.md), flattened plane-major."""
     P, N = len(canon_u8), num_anchors
     size = int(canon_u8.shape[-1])
     H = anchor_H_canon(N, (size, size), torch.float64)                    # (N, 3, 3)
