@@ -28,8 +28,8 @@ import torch
 from omegaconf import open_dict
 from torch.utils.data import DataLoader
 
-from matl.data.streams import stream_generator
 from matl.data.resumable import ResumableShuffleSampler, resume_position
+from matl.data.streams import stream_generator
 from matl.metrics import METRIC_NAMES
 from matl.models.checkpoint import AtomicModelCheckpoint, capture_rng_state, restore_rng_state
 from matl.models.stn import HomographyRegressor, SpatialTransformer
