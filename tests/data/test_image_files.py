@@ -1,4 +1,4 @@
-"""The one image reader: alpha, 16-bit grey, EXIF-free basics, and the errors that name the file."""
+"""Image files in, model-size tensors out: the fit matrices describe the pixels, bad files are one line."""
 
 from __future__ import annotations
 
@@ -6,45 +6,50 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
+import torch
 
-from matl.data.image_files import ImageFileError, load_image_file, read_rgba
+from matl.data.image_files import fit_to_model, load_image_file
+from matl.utils.errors import MatlError
+from tests.predict_helpers import (
+    write_png,
+)
 
 
-def test_read_rgba_and_load_image_file_agree(tmp_path: Path) -> None:
-    rgba = np.zeros((6, 5, 4), np.uint8)
-    rgba[..., 0], rgba[..., 3] = 200, 255
-    rgba[0, 0, 3] = 0  # one transparent pixel
-    Image.fromarray(rgba).save(tmp_path / "a.png")
-    rgb, alpha = read_rgba(tmp_path / "a.png")
-    assert rgb.shape == (6, 5, 3) and alpha is not None and alpha[0, 0] == 0 and alpha[1, 1] == 1
+# ------------------------------------------------------------------------- image coordinates
+@pytest.mark.parametrize("hw,size,fill", [((120, 160), 32, 1.0), ((130, 90), 48, 1.0), ((20, 30), 64, 1.0),
+                                          ((120, 160), 40, 0.6)])
+def test_fit_matrix_matches_the_pixels(hw: tuple[int, int], size: int, fill: float) -> None:
+    """A blob's centroid lands where ``model_H_file`` says, for down- and up-scaling and padding."""
+    h, w = hw
+    sigma = max(h, w) / 20
+    centre = np.array([0.37 * (w - 1) + 0.3, 0.61 * (h - 1) - 0.2])
+    y, x = np.mgrid[0:h, 0:w]
+    blob = np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2 * sigma**2))
+    image, fit = fit_to_model(np.repeat(blob[..., None], 3, axis=2).astype(np.float32), size, fill)
+    assert image.shape == (3, size, size)
+    m = image[0].double()
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
+                            indexing="ij")
+    measured = torch.stack([(m * xs).sum() / m.sum(), (m * ys).sum() / m.sum()])
+    expected = fit.model_H_file @ torch.tensor([*centre, 1.0], dtype=torch.float64)
+    assert torch.allclose(measured, expected[:2], atol=0.05), (measured, expected)
+    assert max(fit.new_height, fit.new_width) == round(fill * size)  # the longer side spans fill * size
+    # padding is zero and centred
+    assert image[:, :, : fit.left].abs().max() == 0 if fit.left else True
+    assert abs((size - fit.new_width) - 2 * fit.left) <= 1 and abs((size - fit.new_height) - 2 * fit.top) <= 1
+
+
+def test_load_image_file_alpha_and_bad_files(tmp_path: Path) -> None:
+    rgb = np.full((10, 12, 3), 0.8)
+    alpha = np.zeros((10, 12))
+    alpha[2:8, 3:9] = 1.0
+    write_png(tmp_path / "a.png", rgb, alpha)
     loaded = load_image_file(tmp_path / "a.png")
-    assert np.array_equal(loaded, rgb * alpha[..., None]) and loaded[0, 0].max() == 0
-    assert np.isclose(loaded[1, 1, 0], 200 / 255)
-
-    Image.fromarray(np.full((4, 4, 3), 51, np.uint8)).save(tmp_path / "b.png")
-    rgb, alpha = read_rgba(tmp_path / "b.png")
-    assert alpha is None and np.allclose(rgb, 0.2) and np.array_equal(load_image_file(tmp_path / "b.png"), rgb)
-
-
-def test_16_bit_grey_is_scaled_by_its_depth(tmp_path: Path) -> None:
-    Image.fromarray(np.array([[0, 32768], [65535, 13107]], np.uint16)).save(tmp_path / "g.png")
-    rgb, alpha = read_rgba(tmp_path / "g.png")
-    assert alpha is None and rgb.shape == (2, 2, 3)
-    assert np.allclose(rgb[..., 0], [[0.0, 32768 / 65535], [1.0, 0.2]], atol=1e-6)
-    assert np.array_equal(rgb[..., 0], rgb[..., 2])
-
-
-def test_unusable_files_name_themselves(tmp_path: Path) -> None:
-    with pytest.raises(ImageFileError, match=r"nope\.png: no such file"):
-        read_rgba(tmp_path / "nope.png")
+    assert loaded.shape == (10, 12, 3) and loaded[0, 0].max() == 0 and loaded[4, 5].min() > 0.75
     (tmp_path / "empty.png").write_bytes(b"")
-    with pytest.raises(ImageFileError, match=r"empty\.png: empty file"):
-        read_rgba(tmp_path / "empty.png")
-    (tmp_path / "text.png").write_text("not an image")
-    with pytest.raises(ImageFileError, match=r"text\.png: not an image"):
-        load_image_file(tmp_path / "text.png")
-    Image.fromarray(np.zeros((1, 3, 3), np.uint8)).save(tmp_path / "line.png")
-    assert read_rgba(tmp_path / "line.png")[0].shape == (1, 3, 3)
-    with pytest.raises(ImageFileError, match=r"line\.png: image has no pixels"):
-        read_rgba(tmp_path / "line.png", min_side=2)  # the photo path needs 2 px each way
+    (tmp_path / "text.png").write_text("hello")
+    for name, message in (("empty.png", "empty file"), ("text.png", "not an image"), ("none.png", "no such file")):
+        with pytest.raises(MatlError, match=message):
+            load_image_file(tmp_path / name)
+
+

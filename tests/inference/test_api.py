@@ -19,7 +19,7 @@ from matl.geometry import corner_error_px
 from matl.inference.api import calibrate_open_set
 from matl.inference.files import predict
 from matl.utils.errors import MatlError
-from tests.test_eval_predict import (
+from tests.predict_helpers import (
     COLOURS,
     GALLERY_HW,
     QUERY_HW,
@@ -44,7 +44,7 @@ class StubModel(nn.Module):
 
 def exact_model_pose() -> torch.Tensor:
     """The model-frame pose of make_files' queries (N = 1: the anchor is the canonical image)."""
-    from tests.test_eval_predict import true_query_H_gallery
+    from tests.predict_helpers import true_query_H_gallery
 
     gallery_fit = fit_geometry(*GALLERY_HW, SIZE).model_H_file
     query_fit = fit_geometry(*QUERY_HW, SIZE).model_H_file
@@ -191,7 +191,7 @@ def test_threads_take_turns(tmp_path: Path) -> None:
     assert len(answers) == 9 and all(a == expected for a in answers)
 
 
-def test_same_numbers_as_the_predict_command(tiny_run: Path, tmp_path: Path) -> None:  # noqa: F811
+def test_same_numbers_as_the_predict_command(tiny_run: Path, tmp_path: Path) -> None:
     ckpt = tiny_run / "checkpoints" / "best.ckpt"
     gallery, queries, _ = make_files(tmp_path)
     predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["cache=false"]))

@@ -194,7 +194,7 @@ def test_predict_with_refinement_and_faiss(tmp_path: Path, cache_dir: Path) -> N
     and say so in the summary; the records stay valid."""
     pytest.importorskip("faiss")
     from matl.inference.files import predict
-    from tests.test_eval_predict import make_files
+    from tests.predict_helpers import make_files
 
     ckpt = write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir)
     gallery, queries, _ = make_files(tmp_path)
