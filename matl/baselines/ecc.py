@@ -15,7 +15,7 @@ RANSAC's estimate.
   on the product only. The template mask needs ``cv2.findTransformECCWithMask`` (newer OpenCV
   releases, 5.0 here); an older OpenCV gets a one-line error at construction. (``findTransformECC``
   masks only the *input*: carrying the anchor's mask into the query by RANSAC's homography and
-  passing it there was measured worse than RANSAC alone, see docs/baselines.md.)
+  passing it there was worse than RANSAC alone on validation queries, so it is not offered.)
 * **Direction.** ECC finds ``W`` with ``input(W x) ~ template(x)``: ``W`` maps template pixels to
   input pixels. With the anchor as template and the query as input, ``W`` *is* ``query_H_anchor``
   (anchor pixels -> query pixels), no inverse. OpenCV's pixel convention is the project's:
@@ -41,10 +41,9 @@ import torch
 from matl.baselines.keypoints import MatchResult, check_image_batch, to_gray_float
 from matl.baselines.sift import SiftRansacMatcher
 
-__all__ = ["ECC_OUTCOMES", "FOREGROUND", "EccRefinement", "EccRefiner", "SiftEccMatcher", "foreground_masks"]
+__all__ = ["FOREGROUND", "EccRefinement", "EccRefiner", "SiftEccMatcher", "corner_shift_px", "foreground_masks"]
 
 FOREGROUND = 1e-3  # a pixel brighter than this in any channel is foreground (backgrounds are exactly 0)
-ECC_OUTCOMES = ("refined", "failed", "rejected")
 
 
 def foreground_masks(images: torch.Tensor) -> np.ndarray:
@@ -96,7 +95,7 @@ class EccRefinement:
 
 
 class EccRefiner:
-    """``cv2.findTransformECC`` with ``MOTION_HOMOGRAPHY``, coarse to fine, guarded (module docstring).
+    """``cv2.findTransformECCWithMask`` with ``MOTION_HOMOGRAPHY``, coarse to fine, guarded (module docstring).
 
     Args:
         iterations: ECC iterations per pyramid level (``criteria.maxCount``).
