@@ -1,4 +1,4 @@
-"""Homography helpers: frames, normalisation, composition, warping and errors.
+"""Homography helpers: frames, normalisation, composition, the degeneracy rule and pose errors.
 
 Convention:
     * Pixel coordinates: x right, y down, ``(0, 0)`` is the *centre* of the top-left pixel (OpenCV).
@@ -9,24 +9,29 @@ Convention:
     * Positive angles rotate the image content counter-clockwise *as seen on screen* (y down),
       the convention of OpenCV's ``getRotationMatrix2D`` and kornia.
 
-kornia does the heavy lifting (warps and pixel<->normalised changes); these functions only fix
-the conventions above so that callers never pass a matrix in the wrong direction.
+These functions fix the conventions above so that callers never pass a matrix in the wrong
+direction; the warps themselves are in :mod:`matl.geometry.warp`. The pixel <-> normalised changes
+are kornia's arithmetic: :func:`pixel_to_normalised` calls it, :func:`normalised_to_pixel` (on every
+query, and inside traced graphs) computes the same products with cached matrices, bit for bit.
 """
 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import torch
-from kornia.geometry.conversions import denormalize_homography, normalize_homography
+from kornia.geometry.conversions import normalize_homography
 from kornia.geometry.linalg import transform_points
-from kornia.geometry.transform import homography_warp, warp_perspective
 
 Size = tuple[int, int]  # (height, width)
 
 
 def check_homographies(H: torch.Tensor, name: str = "H") -> torch.Tensor:
-    """Raise a one-line error unless ``H`` has shape ``(..., 3, 3)``."""
+    """Raise a one-line error unless ``H`` has shape ``(..., 3, 3)`` (not checked while tracing, where sizes
+    are tensors: the trace fixes them)."""
+    if torch.jit.is_tracing():
+        return H
     if not isinstance(H, torch.Tensor) or H.ndim < 2 or tuple(H.shape[-2:]) != (3, 3):
         shape = tuple(H.shape) if isinstance(H, torch.Tensor) else type(H).__name__
         raise ValueError(f"{name} must be a (..., 3, 3) tensor of homographies, got {shape}")
@@ -66,11 +71,49 @@ def pixel_to_normalised(dst_H_src: torch.Tensor, size: Size) -> torch.Tensor:
     return scale_to_unit(out.reshape(shape))
 
 
-def normalised_to_pixel(dst_H_src_norm: torch.Tensor, size: Size) -> torch.Tensor:
-    """Inverse of :func:`pixel_to_normalised`."""
+@lru_cache(maxsize=32)
+def _normalisation(height: int, width: int, device: torch.device, dtype: torch.dtype
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    with torch.inference_mode(False), torch.no_grad():  # plain tensors, whatever mode the first caller is in
+        # kornia's normal_transform_pixel (a one-pixel axis maps to 0) and the inverse its
+        # denormalize_homography takes (LU in the matrix's dtype), so that the products below round as kornia's
+        sx, tx = (1.0, 0.0) if width == 1 else (2.0 / (width - 1.0), -1.0)
+        sy, ty = (1.0, 0.0) if height == 1 else (2.0 / (height - 1.0), -1.0)
+        norm_H_pixel = torch.tensor([[[sx, 0.0, tx], [0.0, sy, ty], [0.0, 0.0, 1.0]]], dtype=dtype, device=device)
+        return torch.linalg.inv_ex(norm_H_pixel).inverse, norm_H_pixel
+
+
+def normalisation_matrices(size: Size, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(pixel_H_norm, norm_H_pixel)``, each ``(1, 3, 3)``, of images of ``size`` (``align_corners=True``).
+
+    Cached per size, device and dtype: do not modify them (a traced module keeps its own copies).
+    """
+    height, width = size
+    return _normalisation(int(height), int(width), torch.device(device or "cpu"), dtype)
+
+
+def normalised_to_pixel(dst_H_src_norm: torch.Tensor, size: Size,
+                        matrices: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """Inverse of :func:`pixel_to_normalised`: ``pixel_H_norm @ H @ norm_H_pixel``, scaled so that ``H[2, 2] = 1``.
+
+    The products of kornia's ``denormalize_homography``, in the same order (bit for bit), with cached
+    matrices and no Python branch on the values: the one conversion of the training path, the query
+    path and the traced query graph.
+
+    Args:
+        dst_H_src_norm: ``(..., 3, 3)`` normalised homographies between two images of ``size``.
+        size: ``(height, width)``.
+        matrices: ``(pixel_H_norm, norm_H_pixel)`` of :func:`normalisation_matrices` (a traced module
+            passes its own copies, constants of the graph); None looks them up.
+    Returns:
+        ``(..., 3, 3)`` pixel homographies.
+    """
     check_homographies(dst_H_src_norm, "dst_H_src_norm")
+    pixel_H_norm, norm_H_pixel = (normalisation_matrices(size, dst_H_src_norm.device, dst_H_src_norm.dtype)
+                                  if matrices is None else matrices)
     shape = dst_H_src_norm.shape
-    out = denormalize_homography(dst_H_src_norm.reshape(-1, 3, 3), size, size, align_corners=True)
+    out = pixel_H_norm @ (dst_H_src_norm.reshape(-1, 3, 3) @ norm_H_pixel)
     return scale_to_unit(out.reshape(shape))
 
 
@@ -108,7 +151,7 @@ def centre_rotation(angle_deg: torch.Tensor, size: Size) -> torch.Tensor:
 
 
 def anchor_H_canon(num_anchors: int, size: Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Fixed anchors (DESIGN §2): anchor ``k`` is the canonical image rotated by ``k * 360 / N`` degrees.
+    """Fixed anchors (docs/design.md): anchor ``k`` is the canonical image rotated by ``k * 360 / N`` degrees.
 
     Returns:
         ``(N, 3, 3)`` pixel homographies ``anchor_k_H_canon``.
@@ -122,7 +165,7 @@ def anchor_H_canon(num_anchors: int, size: Size, dtype: torch.dtype = torch.floa
 def compose_query_H_canon(query_H_anchor: torch.Tensor, anchor_H_canon: torch.Tensor) -> torch.Tensor:
     """Pose of a query: ``query_H_canon = query_H_anchor @ anchor_k_H_canon``.
 
-    This equals DESIGN's ``inv(anchor_H_query) @ anchor_k_H_canon``; the STN predicts the sampling
+    This equals docs/design.md's ``inv(anchor_H_query) @ anchor_k_H_canon``; the STN predicts the sampling
     direction ``query_H_anchor`` directly, so no inverse is needed.
     """
     check_homographies(query_H_anchor, "query_H_anchor")
@@ -130,22 +173,39 @@ def compose_query_H_canon(query_H_anchor: torch.Tensor, anchor_H_canon: torch.Te
     return scale_to_unit(query_H_anchor @ anchor_H_canon)
 
 
-def warp_image(src: torch.Tensor, dst_H_src: torch.Tensor, size: Size | None = None) -> torch.Tensor:
-    """Warp images ``(B, C, H, W)`` by pixel homographies ``dst_H_src`` ``(B, 3, 3)``; zeros outside."""
-    check_homographies(dst_H_src, "dst_H_src")
-    size = tuple(src.shape[-2:]) if size is None else size
-    return warp_perspective(src, dst_H_src.to(src.dtype), size, align_corners=True)
+def degenerate_homographies(H: torch.Tensor, max_condition: float, eye: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B,)`` True where a ``(B, 3, 3)`` homography is unusable: a non-finite entry, or a condition
+    number (largest / smallest singular value) of at least ``max_condition`` (the zero matrix too).
 
-
-def sample_by_normalised(src: torch.Tensor, src_H_dst_norm: torch.Tensor, size: Size | None = None) -> torch.Tensor:
-    """Warp by a *sampling* homography in normalised coordinates (dst -> src), as an STN does.
-
-    ``out(x) = src(src_H_dst_norm @ x)``: no matrix inverse, so gradients stay well behaved for
-    any predicted matrix.
+    The one rule of the STN's guard (:func:`guard_homographies`: training, inference, the traced
+    query graph) and of the pose refiner's acceptance. ``eye``: the identity substituted before the
+    SVD of non-finite matrices (a traced graph passes its own constant); None makes one.
     """
-    size = tuple(src.shape[-2:]) if size is None else size
-    return homography_warp(src, src_H_dst_norm.to(src.dtype), size, align_corners=True,
-                           normalized_coordinates=True, normalized_homography=True)
+    check_homographies(H)
+    finite = torch.isfinite(H).all(dim=2).all(dim=1)
+    if eye is None:
+        eye = torch.eye(3, dtype=H.dtype, device=H.device)
+    sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, eye))
+    return ~finite | (sv[:, -1] * max_condition <= sv[:, 0])
+
+
+def guard_homographies(H: torch.Tensor, max_condition: float, eye: torch.Tensor | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Replace the unusable homographies of a batch by the identity, so that a warp by them stays defined.
+
+    Args:
+        H: ``(B, 3, 3)``.
+        max_condition: the limit of :func:`degenerate_homographies`.
+        eye: the ``(3, 3)`` identity to use (a traced graph passes its own constant); None makes one.
+    Returns:
+        ``(H (B, 3, 3), degenerate (B,) bool)``: ``H`` with the degenerate matrices replaced by the
+        identity. The selection is a ``torch.where`` whatever the values (no Python branch, so the same
+        code traces); the rule sees ``H`` detached, so the gradient flows to the kept matrices only.
+    """
+    bad = degenerate_homographies(H.detach(), max_condition, eye)
+    if eye is None:
+        eye = torch.eye(3, dtype=H.dtype, device=H.device)
+    return torch.where(bad[:, None, None], eye, torch.nan_to_num(H)), bad
 
 
 def transfer_points(dst_H_src: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

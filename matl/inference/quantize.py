@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from matl.inference.recognizer import QueryGraph
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 
@@ -184,8 +185,6 @@ class QuantizedQueryPath:
 
     def __init__(self, feature_net: FeatureNet, stn: SpatialTransformer, image_size: int,
                  calibration: torch.Tensor, batch_size: int = 64) -> None:
-        from matl.inference.recognizer import QueryGraph
-
         reason = supports(feature_net, stn)
         if reason is not None:
             raise RuntimeError(reason)
@@ -197,9 +196,7 @@ class QuantizedQueryPath:
             warnings.filterwarnings("ignore", category=UserWarning)
             warnings.filterwarnings("ignore", category=DeprecationWarning)
             regressor, feature = self._quantize(calibration, batch_size)
-            self.graph_module = QueryGraph(stn, feature_net, image_size)
-            self.graph_module.regressor, self.graph_module.feature_net = regressor, feature
-            self.graph_module.eval()
+            self.graph_module = QueryGraph(stn, feature_net, image_size, regressor=regressor, feature=feature).eval()
             self.feature_module = feature
             example = calibration[:1].float()
             self.graph = torch.jit.optimize_for_inference(torch.jit.freeze(
@@ -220,17 +217,15 @@ class QuantizedQueryPath:
     def _quantize(self, calibration: torch.Tensor, batch_size: int) -> tuple[nn.Module, nn.Module]:
         from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
 
-        from matl.inference.recognizer import QueryGraph
-
         example = (calibration[:1].float(),)
         regressor_core = _RegressorCore(copy.deepcopy(self.stn.regressor)).eval()
         feature_core = _FeatureCore(copy.deepcopy(self.feature_net)).eval()
         observed_regressor = prepare_fx(regressor_core, _qconfig_mapping(regressor_core), example)
         observed_feature = prepare_fx(feature_core, _qconfig_mapping(feature_core), example)
         # the float query graph with observers: the regressor sees raw and warped queries, c() s(q), as at test time
-        observer = QueryGraph(self.stn, self.feature_net, self.image_size).eval()
-        observer.regressor = _Regressor(observed_regressor)
-        observer.feature_net = _Feature(observed_feature, self.feature_net.normalize)
+        # (the observed modules keep the modes prepare_fx gave them)
+        observer = QueryGraph(self.stn, self.feature_net, self.image_size, regressor=_Regressor(observed_regressor),
+                              feature=_Feature(observed_feature, self.feature_net.normalize))
         for start in range(0, len(calibration), batch_size):
             observer(calibration[start:start + batch_size].float())
         return (_Regressor(convert_fx(observed_regressor)).eval(),

@@ -19,17 +19,18 @@ import torch
 from torch import nn
 
 from matl.data.gallery import Gallery
-from matl.geometry import check_images, compose_query_H_canon
+from matl.geometry import (
+    check_images,
+    compose_query_H_canon,
+    normalisation_matrices,
+    normalised_grid,
+    normalised_to_pixel,
+    sample_by_normalised,
+)
 from matl.inference.search import ExactSearch, GallerySearch, SearchFactory, nearest
 from matl.losses import appearance_distance
 from matl.models.feature import FeatureNet
-from matl.models.stn import (
-    SpatialTransformer,
-    degenerate_homographies,
-    normalised_grid,
-    pixel_from_normalised,
-    warp_by_normalised,
-)
+from matl.models.stn import SpatialTransformer, regress_homography
 
 # nearest lives in matl.inference.search
 __all__ = ["CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest"]
@@ -68,38 +69,45 @@ class QueryGraph(nn.Module):
     """``s()`` then ``c()`` of queries as plain torch ops with no data-dependent Python control flow
     (traceable by ``torch.jit.trace`` and ``torch.export``), equal to the eager networks up to float rounding.
 
-    Mirrors :meth:`SpatialTransformer.forward <matl.models.stn.SpatialTransformer.forward>` (``iterations``
-    regressions composed, the degeneracy guard of ``_guard`` as ``torch.where``, the warp as
-    :func:`~matl.models.stn.warp_by_normalised` on a grid held as a buffer, the pixel conversion with
-    fixed matrices) and the feature net. Used by :class:`CompiledQueryPath` and by ``matl.export``.
+    ``s()`` is :func:`~matl.models.stn.regress_homography` (the STN's own loop and guard) with the warp
+    :func:`~matl.geometry.sample_by_normalised` on a grid held as a buffer, then
+    :func:`~matl.geometry.normalised_to_pixel` with matrices held as buffers, so that the traced graph
+    keeps them as constants. Used by :class:`CompiledQueryPath`, by ``matl.export`` and, with int8
+    layers, by :class:`matl.inference.quantize.QuantizedQueryPath`.
 
     ``forward(images (B, 3, S, S)) -> (embedding (B, D), query_H_anchor (B, 3, 3) pixel,
     degenerate (B,) bool, warped (B, 3, S, S))``.
+
+    Args:
+        stn: ``s()`` (its regressor, ``iterations``, ``max_condition`` and ``image_size``).
+        feature_net: ``c()``.
+        image_size: ``S``; None: the STN's.
+        regressor: replaces ``stn.regressor`` (the int8 path's quantised one); a module, so that its
+            weights are the graph's.
+        feature: replaces ``feature_net``, likewise.
     """
 
-    def __init__(self, stn: nn.Module, feature_net: nn.Module, image_size: int | None = None) -> None:
+    def __init__(self, stn: nn.Module, feature_net: nn.Module, image_size: int | None = None,
+                 regressor: nn.Module | None = None, feature: nn.Module | None = None) -> None:
         super().__init__()
-        self.regressor, self.feature_net = stn.regressor, feature_net
+        self.regressor = stn.regressor if regressor is None else regressor
+        self.feature_net = feature_net if feature is None else feature
         self.iterations, self.max_condition = int(stn.iterations), float(stn.max_condition)
         size = int(image_size if image_size is not None else stn.image_size)
         self.size = size
         self.register_buffer("grid", normalised_grid(size, size).clone(), persistent=False)  # (3, S*S)
-        # pixel -> normalised coordinates (align_corners=True) and back
-        denorm, norm = pixel_from_normalised(size, torch.device("cpu"), torch.float32)
-        self.register_buffer("norm", norm.clone(), persistent=False)
-        self.register_buffer("denorm", denorm.clone(), persistent=False)
+        pixel_H_norm, norm_H_pixel = normalisation_matrices((size, size))
+        self.register_buffer("pixel_H_norm", pixel_H_norm.clone(), persistent=False)  # (1, 3, 3)
+        self.register_buffer("norm_H_pixel", norm_H_pixel.clone(), persistent=False)  # (1, 3, 3)
         self.register_buffer("eye", torch.eye(3), persistent=False)
 
+    def _warp(self, images: torch.Tensor, H: torch.Tensor) -> torch.Tensor:
+        return sample_by_normalised(images, H, self.grid)
+
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        H = self.regressor(images)
-        for _ in range(self.iterations - 1):
-            H = H @ self.regressor(warp_by_normalised(images, H, self.grid))
-        bad = degenerate_homographies(H, self.max_condition, self.eye)
-        H = torch.where(bad[:, None, None], self.eye, torch.nan_to_num(H))
-        warped = warp_by_normalised(images, H, self.grid)
-        pixel = self.denorm @ (H @ self.norm)
-        h22 = pixel[:, 2:3, 2:3]
-        pixel = pixel / torch.where(h22.abs() > 1e-12, h22, torch.ones_like(h22))
+        H, bad = regress_homography(self.regressor, images, self.iterations, self.max_condition, self._warp, self.eye)
+        warped = self._warp(images, H)
+        pixel = normalised_to_pixel(H, (self.size, self.size), (self.pixel_H_norm, self.norm_H_pixel))
         c = self.feature_net
         embedding = c.forward_graph(warped) if isinstance(c, FeatureNet) else c(warped)
         return embedding, pixel, bad, warped

@@ -41,9 +41,15 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import pyrdown
 
-from matl.geometry import compose_query_H_canon, normalised_to_pixel, pixel_to_normalised
+from matl.geometry import (
+    compose_query_H_canon,
+    degenerate_homographies,
+    normalised_grid,
+    normalised_to_pixel,
+    pixel_to_normalised,
+    sample_by_normalised,
+)
 from matl.inference.recognizer import Prediction
-from matl.models.stn import degenerate_homographies
 
 __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
 
@@ -72,25 +78,6 @@ def _update_matrix(p: torch.Tensor) -> torch.Tensor:
     """``I + D(p)``: ``(B, 8) -> (B, 3, 3)``."""
     full = torch.cat([p, torch.zeros_like(p[:, :1])], dim=1).view(-1, 3, 3)
     return full + torch.eye(3, dtype=p.dtype, device=p.device)
-
-
-def _grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """Homogeneous normalised pixel-centre coordinates ``(h * w, 3)`` of a ``size`` grid, row-major."""
-    h, w = size
-    v, u = torch.meshgrid(torch.linspace(-1, 1, h, dtype=dtype, device=device),
-                          torch.linspace(-1, 1, w, dtype=dtype, device=device), indexing="ij")
-    return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(h * w, dtype=dtype, device=device)], -1)
-
-
-def _sample(images: torch.Tensor, H: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """``images(H @ x)`` for every ``x`` of ``grid`` (what :func:`matl.geometry.sample_by_normalised`
-    computes, without rebuilding the grid at every call): ``(B, C, h, w)``, zeros outside."""
-    B, _, h, w = images.shape
-    points = grid @ H.to(images.dtype).transpose(1, 2)                            # (B, hw, 3)
-    z = points[..., 2:]
-    z = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)  # a point at infinity samples nothing
-    xy = (points[..., :2] / z).view(B, h, w, 2)
-    return F.grid_sample(images, xy, mode="bilinear", padding_mode="zeros", align_corners=True)
 
 
 def _gradients(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -177,7 +164,8 @@ class PhotometricRefiner:
 
     def _residuals(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
                    scale: torch.Tensor, grid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Warped query and residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``).
+        """Warped query and residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``); ``grid``:
+        the level's :func:`~matl.geometry.normalised_grid` ``(3, h * w)`` (None looks it up).
 
         Lighting model: on the anchor's foreground ``F`` the warped query is ``gain * A + bias`` per
         channel, background stays 0, so ``r = (Iw - gain * A - bias * F) / scale`` over the whole frame.
@@ -187,9 +175,7 @@ class PhotometricRefiner:
         about a pixel); and with a model rather than per-image normalisation, background pixels are 0
         on both sides and do not pull the pose towards matching image statistics.
         """
-        if grid is None:
-            grid = _grid(tuple(query.shape[-2:]), query.dtype, query.device)
-        warped = _sample(query, H, grid)
+        warped = sample_by_normalised(query, H, grid)
         count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
         a_mean = (anchor * mask).sum(dim=(-2, -1), keepdim=True) / count
         w_mean = (warped * mask).sum(dim=(-2, -1), keepdim=True) / count
@@ -260,7 +246,7 @@ class PhotometricRefiner:
         # pixel differences -> derivatives in normalised coordinates (align_corners=True)
         gx = gx.reshape(B, C, h * w) * ((w - 1) / 2.0)
         gy = gy.reshape(B, C, h * w) * ((h - 1) / 2.0)
-        x, y = grid[:, 0], grid[:, 1]
+        x, y = grid[0], grid[1]
         gxx, gyy = gx * x, gy * y
         radial = gxx + gyy
         J = torch.stack([gxx, gx * y, gx, gy * x, gyy, gy, -radial * x, -radial * y], dim=-1)  # (B, C, hw, 8)
@@ -270,7 +256,7 @@ class PhotometricRefiner:
                       scale: torch.Tensor) -> torch.Tensor:
         """Levenberg-Marquardt / IRLS iterations at one level; returns the normalised ``H`` ``(B, 3, 3)``."""
         B, C, h, w = query.shape
-        grid = _grid((h, w), query.dtype, query.device)
+        grid = normalised_grid(h, w, query.device, query.dtype)                   # (3, h * w)
         corners = torch.tensor([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=torch.float64,
                                device=query.device)
         half_size = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64, device=query.device)

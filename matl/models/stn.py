@@ -4,19 +4,25 @@ Convention:
     The regressor predicts the *sampling* homography ``query_H_anchor`` (anchor-frame pixel ->
     query pixel), in normalised coordinates, as identity + 8 learned entries. The STN output is
     ``s(query)(x) = query(query_H_anchor @ x)``: the query brought into the frame of an anchor.
-    DESIGN's ``anchor_H_query`` is its inverse; we never need to invert during training.
+    docs/design.md's ``anchor_H_query`` is its inverse; we never need to invert during training.
 
-Inference (``SpatialTransformer.infer``, used by :class:`matl.inference.recognizer.Recognizer`) computes
-the same function as ``forward`` up to float rounding, for a batch of one query at a few
-milliseconds: the warp is ``grid_sample`` on a cached normalised grid (:func:`warp_by_normalised`)
-instead of kornia's general ``homography_warp`` (whose per-call set-up cost more than the sampling),
-the pixel conversion uses cached normalisation matrices, and the convolutions run on channels-last
-tensors (oneDNN convolutions, vectorised max pools). Training keeps ``forward`` (kornia) unchanged.
-See docs/speed.md.
+The pose is :func:`regress_homography`: ``iterations`` regressions, each on the query warped by the
+composition so far, then the degeneracy guard (:func:`matl.geometry.guard_homographies`). Every path
+calls it with its own regressor and warp:
+
+* ``SpatialTransformer.forward`` (training): the regressor module and kornia's warp
+  (:func:`matl.geometry.sample_by_normalised_kornia`, whose rounding the training numbers are).
+* ``SpatialTransformer.infer`` (inference, used by :class:`matl.inference.recognizer.Recognizer`):
+  ``HomographyRegressor.infer`` (channels-last tensors, oneDNN convolutions, vectorised max pools)
+  and :func:`matl.geometry.sample_by_normalised` on a cached grid, for a batch of one query at a few
+  milliseconds; the same outputs as ``forward`` up to float rounding. See docs/speed.md.
+* :class:`matl.inference.recognizer.QueryGraph` (traced, exported, and with int8 layers in
+  :mod:`matl.inference.quantize`): its own regressor callable and a grid held as a buffer.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -24,86 +30,38 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from matl.geometry import normalised_to_pixel, sample_by_normalised
+from matl.geometry import guard_homographies, normalised_to_pixel, sample_by_normalised, sample_by_normalised_kornia
 from matl.models.feature import conv_infer
 
-#: points with ``|z|`` at most this are left undivided (kornia's ``convert_points_from_homogeneous``)
-HOMOGENEOUS_EPS = 1e-8
+#: ``(B, 3, S, S) -> (B, 3, 3)`` normalised sampling homographies
+Regressor = Callable[[torch.Tensor], torch.Tensor]
+#: ``(images (B, 3, S, S), src_H_dst_norm (B, 3, 3)) -> (B, 3, S, S)``
+Warp = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-@lru_cache(maxsize=32)
-def _normalised_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    """``(3, H*W)`` homogeneous normalised pixel centres ``(u, v, 1)``, row-major (kornia's
-    ``create_meshgrid`` with ``align_corners=True``). Cached: built once per size, device and dtype."""
-    with torch.inference_mode(False), torch.no_grad():  # a plain tensor, whatever mode the first caller is in
-        v, u = torch.meshgrid(torch.linspace(-1.0, 1.0, height, device=device, dtype=dtype),
-                              torch.linspace(-1.0, 1.0, width, device=device, dtype=dtype), indexing="ij")
-        return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)])
+def regress_homography(regressor: Regressor, images: torch.Tensor, iterations: int, max_condition: float,
+                       warp: Warp = sample_by_normalised, eye: torch.Tensor | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """s()'s pose: regress, re-regress on the warped query and compose, then guard.
 
-
-def normalised_grid(height: int, width: int, device: torch.device | None = None,
-                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """``(3, H*W)`` homogeneous normalised pixel centres ``(u, v, 1)`` of an image, row-major (kornia's
-    ``create_meshgrid``, ``align_corners=True``); cached per size, device and dtype (do not modify it)."""
-    return _normalised_grid(int(height), int(width), torch.device(device or "cpu"), dtype)
-
-
-def warp_by_normalised(images: torch.Tensor, src_H_dst_norm: torch.Tensor, grid: torch.Tensor | None = None
-                       ) -> torch.Tensor:
-    """``out(x) = images(src_H_dst_norm @ x)`` over the normalised grid of ``images``; zeros outside.
-
-    The same warp as :func:`matl.geometry.sample_by_normalised` (kornia's ``homography_warp`` with
-    normalised coordinates and ``align_corners=True``) up to float rounding, without its per-call
-    overhead: one ``(B, 3, 3) @ (3, H*W)`` product with a cached grid, the perspective division
-    (points with ``|z| <= 1e-8`` left undivided, as kornia does), one ``grid_sample``. Differentiable.
+    ``H = regressor(images)``, then ``iterations - 1`` times ``H = H @ regressor(warp(images, H))``
+    (each step refines the warp so far), then the unusable matrices are replaced by the identity.
+    No Python branch on the values: the same code runs eagerly, under autograd and traced.
 
     Args:
-        images: ``(B, C, H, W)``.
-        src_H_dst_norm: ``(B, 3, 3)`` sampling homographies in normalised coordinates.
-        grid: :func:`normalised_grid` of the images' size (a module that is traced passes its own copy,
-            so that the grid is a constant of the graph); None looks it up.
+        regressor: ``(B, 3, S, S) -> (B, 3, 3)`` normalised sampling homographies.
+        images: ``(B, 3, S, S)`` queries.
+        iterations: regressions composed (>= 1).
+        max_condition: the degeneracy limit (:func:`matl.geometry.degenerate_homographies`).
+        warp: ``warp(images, H)``, the sampler of the intermediate steps.
+        eye: the identity for the guard (a traced graph passes its own constant); None makes one.
+    Returns:
+        ``(query_H_anchor (B, 3, 3) normalised, degenerate (B,) bool)``.
     """
-    batch, _, height, width = images.shape
-    if grid is None:
-        grid = normalised_grid(height, width, images.device, images.dtype)
-    points = src_H_dst_norm.to(images.dtype) @ grid
-    z = points[:, 2:]
-    z = torch.where(z.abs() > HOMOGENEOUS_EPS, z, 1.0)
-    grid_xy = (points[:, :2] / z).transpose(1, 2).reshape(batch, height, width, 2)
-    return F.grid_sample(images, grid_xy, mode="bilinear", padding_mode="zeros", align_corners=True)
-
-
-@lru_cache(maxsize=32)
-def pixel_from_normalised(size: int, device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(pixel_H_norm, norm_H_pixel)`` of a ``size`` x ``size`` image (``align_corners=True``), cached."""
-    with torch.inference_mode(False), torch.no_grad():
-        norm = torch.tensor([[2.0 / (size - 1), 0.0, -1.0], [0.0, 2.0 / (size - 1), -1.0], [0.0, 0.0, 1.0]],
-                            dtype=torch.float64) if size > 1 else torch.eye(3, dtype=torch.float64)
-        return torch.linalg.inv(norm).to(device, dtype), norm.to(device, dtype)
-
-
-def normalised_to_pixel_square(H_norm: torch.Tensor, size: int) -> torch.Tensor:
-    """:func:`matl.geometry.normalised_to_pixel` for ``size`` x ``size`` images, with cached matrices:
-    ``pixel_H_norm @ H_norm @ norm_H_pixel`` scaled so that ``H[2, 2] = 1``."""
-    pixel_H_norm, norm_H_pixel = pixel_from_normalised(int(size), H_norm.device, H_norm.dtype)
-    out = pixel_H_norm @ (H_norm @ norm_H_pixel)
-    h22 = out[:, 2:3, 2:3]
-    return out / torch.where(h22.abs() > 1e-12, h22, torch.ones_like(h22))
-
-
-def degenerate_homographies(H: torch.Tensor, max_condition: float, eye: torch.Tensor | None = None) -> torch.Tensor:
-    """``(B,)`` True where a ``(B, 3, 3)`` homography is unusable: a non-finite entry, or a condition
-    number (largest / smallest singular value) of at least ``max_condition`` (also the zero matrix).
-
-    The one rule of the STN's guard (training, inference, the traced query graph) and of the pose
-    refiner. ``eye``: the identity substituted before the SVD of non-finite matrices (a traced graph
-    passes its own constant); None makes one.
-    """
-    finite = torch.isfinite(H).all(dim=2).all(dim=1)
-    if eye is None:
-        eye = torch.eye(3, dtype=H.dtype, device=H.device)
-    sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, eye))
-    return ~finite | (sv[:, -1] * max_condition <= sv[:, 0])
+    H = regressor(images)
+    for _ in range(iterations - 1):
+        H = H @ regressor(warp(images, H))
+    return guard_homographies(H, max_condition, eye)
 
 
 @dataclass
@@ -204,25 +162,14 @@ class SpatialTransformer(nn.Module):
         self.max_condition = max_condition
 
     def regress(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Normalised ``query_H_anchor`` ``(B, 3, 3)`` and a ``(B,)`` degeneracy flag."""
-        H = self.regressor(images)
-        for _ in range(self.iterations - 1):
-            H = H @ self.regressor(sample_by_normalised(images, H))
-        return self._guard(H)
-
-    def _guard(self, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        with torch.no_grad():
-            bad = degenerate_homographies(H, self.max_condition)
-        if bad.any():
-            eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
-            H = torch.where(bad[:, None, None], eye, torch.nan_to_num(H))
-        return H, bad
+        """Normalised ``query_H_anchor`` ``(B, 3, 3)`` and a ``(B,)`` degeneracy flag (the training path)."""
+        return regress_homography(self.regressor, images, self.iterations, self.max_condition,
+                                  sample_by_normalised_kornia)
 
     def forward(self, images: torch.Tensor) -> STNOutput:
         H_norm, bad = self.regress(images)
-        warped = sample_by_normalised(images, H_norm)
-        size = (self.image_size, self.image_size)
-        return STNOutput(warped, normalised_to_pixel(H_norm, size), bad)
+        warped = sample_by_normalised_kornia(images, H_norm)
+        return STNOutput(warped, normalised_to_pixel(H_norm, (self.image_size, self.image_size)), bad)
 
     @torch.no_grad()
     def infer(self, images: torch.Tensor) -> STNOutput:
@@ -230,18 +177,6 @@ class SpatialTransformer(nn.Module):
         fraction of the cost for small batches (see the module docstring)."""
         regressor = self.regressor
         predict = regressor.infer if isinstance(regressor, HomographyRegressor) else regressor
-        H = predict(images)
-        for _ in range(self.iterations - 1):
-            H = H @ predict(warp_by_normalised(images, H))
-        H, bad = self._guard_infer(H)
-        warped = warp_by_normalised(images, H)
-        return STNOutput(warped, normalised_to_pixel_square(H, self.image_size), bad)
-
-    def _guard_infer(self, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`_guard` with a shortcut on the CPU for the usual case (every matrix finite and well
-        conditioned: H is returned as is, the same outcome with a third of the ops)."""
-        if H.device.type == "cpu" and bool(torch.isfinite(H).all()):
-            bad = degenerate_homographies(H, self.max_condition)
-            if not bool(bad.any()):
-                return H, bad
-        return self._guard(H)
+        H, bad = regress_homography(predict, images, self.iterations, self.max_condition, sample_by_normalised)
+        warped = sample_by_normalised(images, H)
+        return STNOutput(warped, normalised_to_pixel(H, (self.image_size, self.image_size)), bad)

@@ -1,11 +1,11 @@
-"""Geometry: identity, round trips, composition, conventions, gradcheck."""
+"""Homographies: round trips, composition, conventions, the degeneracy rule (warps: test_warp.py)."""
 
 from __future__ import annotations
 
 import math
 
 import torch
-from torch.autograd import gradcheck
+from kornia.geometry.conversions import denormalize_homography
 
 from matl.geometry import (
     HomographySampler,
@@ -13,11 +13,13 @@ from matl.geometry import (
     centre_rotation,
     compose_query_H_canon,
     corner_error_px,
+    degenerate_homographies,
     frobenius_pose_error,
+    guard_homographies,
+    normalisation_matrices,
     normalised_to_pixel,
     pixel_to_normalised,
     rescale_homography,
-    sample_by_normalised,
     transfer_points,
     warp_image,
 )
@@ -34,14 +36,6 @@ def textured(size: tuple[int, int] = SIZE, border: int = 8, seed: int = 0) -> to
     img[..., border:-border, border:-border] = torch.nn.functional.interpolate(coarse, inner, mode="bilinear",
                                                                                align_corners=True)
     return img
-
-
-def test_identity_warp_is_identity() -> None:
-    img = textured()
-    out = warp_image(img, torch.eye(3)[None])
-    assert torch.allclose(out, img, atol=1e-5)
-    out2 = sample_by_normalised(img, torch.eye(3)[None])
-    assert torch.allclose(out2, img, atol=1e-5)
 
 
 def test_warp_then_inverse_returns_image_inside_frame() -> None:
@@ -125,9 +119,48 @@ def test_rescale_homography_maps_corners() -> None:
                                                                       dtype=torch.float64))
 
 
-def test_warp_gradcheck_float64() -> None:
-    img = textured((8, 8), border=2).double()
-    H = (torch.eye(3, dtype=torch.float64) + 0.01 * torch.randn(3, 3, dtype=torch.float64,
-                                                              generator=torch.Generator().manual_seed(5)))
-    H = H[None].requires_grad_(True)
-    assert gradcheck(lambda h: sample_by_normalised(img, h), (H,), eps=1e-6, atol=1e-4)
+def test_normalised_to_pixel_is_kornias_arithmetic_bit_for_bit() -> None:
+    g = torch.Generator().manual_seed(6)
+    for size in ((32, 32), (100, 100), (64, 64), (20, 36), (1, 5)):
+        for dtype in (torch.float32, torch.float64):
+            H = (torch.eye(3) + 0.1 * torch.randn(5, 3, 3, generator=g)).to(dtype).requires_grad_(True)
+            ref = denormalize_homography(H, size, size)
+            ref = ref / ref[:, 2:3, 2:3]
+            out = normalised_to_pixel(H, size)
+            assert torch.equal(out, ref), (size, dtype)
+            weights = torch.randn(5, 3, 3, generator=g).to(dtype)
+            grad_out, = torch.autograd.grad((out * weights).sum(), H)
+            grad_ref, = torch.autograd.grad((ref * weights).sum(), H)
+            assert torch.equal(grad_out, grad_ref)
+    pixel_H_norm, norm_H_pixel = normalisation_matrices((5, 9))
+    assert normalisation_matrices((5, 9))[0] is pixel_H_norm  # cached
+    expected = torch.tensor([[[0.25, 0.0, -1.0], [0.0, 0.5, -1.0], [0.0, 0.0, 1.0]]])
+    assert torch.equal(norm_H_pixel, expected) and torch.allclose(pixel_H_norm @ norm_H_pixel, torch.eye(3))
+    # no batch dimension, and matrices passed in (a traced module's buffers)
+    H = torch.eye(3) * 2.0
+    assert torch.equal(normalised_to_pixel(H, (5, 9), (pixel_H_norm, norm_H_pixel)), torch.eye(3))
+
+
+def test_degeneracy_rule_hand_computed() -> None:
+    H = torch.stack([
+        torch.eye(3),                                  # condition 1
+        torch.diag(torch.tensor([1.0, 1e-4, 1.0])),    # condition exactly 1e4: degenerate (at least the limit)
+        torch.diag(torch.tensor([1.0, 2e-4, 1.0])),    # 5e3: kept
+        torch.zeros(3, 3),                             # zero matrix
+        torch.full((3, 3), float("nan")),              # non-finite
+        torch.tensor([[1.0, float("inf"), 0], [0, 1, 0], [0, 0, 1]]),
+    ])
+    assert degenerate_homographies(H, 1e4).tolist() == [False, True, False, True, True, True]
+    assert degenerate_homographies(H.double(), 1e3).tolist() == [False, True, True, True, True, True]
+
+
+def test_guard_replaces_degenerate_by_identity_and_keeps_the_gradient_of_the_rest() -> None:
+    H = torch.stack([torch.full((3, 3), float("nan")), torch.zeros(3, 3), torch.eye(3) * 1.1]).requires_grad_(True)
+    out, bad = guard_homographies(H, 1e4)
+    assert bad.tolist() == [True, True, False]
+    assert torch.equal(out[:2], torch.eye(3).expand(2, 3, 3)) and torch.equal(out[2], torch.eye(3) * 1.1)
+    out.sum().backward()
+    assert torch.equal(H.grad, torch.stack([torch.zeros(3, 3), torch.zeros(3, 3), torch.ones(3, 3)]))
+    # a given identity (a traced graph's constant) is the one used
+    eye = torch.eye(3) * 1.0
+    assert torch.equal(guard_homographies(H.detach(), 1e4, eye)[0][0], eye)

@@ -9,11 +9,11 @@ import torch
 from torch import nn
 
 from matl.data.gallery import Gallery
-from matl.geometry import anchor_H_canon, normalised_to_pixel, sample_by_normalised, warp_image
+from matl.geometry import anchor_H_canon, sample_by_normalised, sample_by_normalised_kornia, warp_image
 from matl.inference.recognizer import CompiledQueryPath, QueryGraph, Recognizer
 from matl.inference.search import nearest
 from matl.models.feature import FeatureNet
-from matl.models.stn import HomographyRegressor, SpatialTransformer, normalised_to_pixel_square, warp_by_normalised
+from matl.models.stn import HomographyRegressor, SpatialTransformer
 from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes
 
@@ -46,17 +46,24 @@ def test_lean_warp_equals_kornia_warp() -> None:
     images = textured_planes(4, S, 1)
     H = random_homographies(4, 2)
     H[1] *= 0.5  # a matrix scaled away from 1: the same warp (kornia rescales it first)
-    assert torch.allclose(warp_by_normalised(images, H), sample_by_normalised(images, H), atol=1e-5)
-    assert torch.allclose(normalised_to_pixel_square(H, S), normalised_to_pixel(H, (S, S)), rtol=1e-5, atol=1e-4)
-    # a non-square image
-    wide = torch.rand(2, 3, 20, 36)
-    assert torch.allclose(warp_by_normalised(wide, H[:2]), sample_by_normalised(wide, H[:2]), atol=1e-5)
+    assert torch.allclose(sample_by_normalised(images, H), sample_by_normalised_kornia(images, H), atol=1e-5)
 
 
 def test_lean_warp_is_differentiable() -> None:
     H = random_homographies(2, 3).requires_grad_()
-    warp_by_normalised(textured_planes(2, S, 4), H).sum().backward()
+    sample_by_normalised(textured_planes(2, S, 4), H).sum().backward()
     assert H.grad is not None and torch.isfinite(H.grad).all() and H.grad.abs().sum() > 0
+
+
+def test_graph_takes_its_own_regressor_and_feature() -> None:
+    """The int8 path's way in: another regressor and feature module, the same loop, guard and conversion."""
+    feature_net, stn = networks(4)
+    images = textured_planes(2, S, 6)
+    doubled = nn.Sequential(stn.regressor)  # the same function, another module
+    with torch.no_grad():
+        ref = QueryGraph(stn, feature_net).eval()(images)
+        out = QueryGraph(stn, FeatureNet(), regressor=doubled, feature=feature_net).eval()(images)
+    assert all(torch.equal(a, b) for a, b in zip(ref, out, strict=True))
 
 
 def test_infer_methods_equal_forward() -> None:
