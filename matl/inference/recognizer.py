@@ -28,7 +28,7 @@ from matl.geometry import (
     sample_by_normalised,
 )
 from matl.inference.search import ExactSearch, GallerySearch, SearchFactory, nearest
-from matl.losses import appearance_distance
+from matl.losses import anchor_distances
 from matl.models.feature import FeatureNet
 from matl.models.stn import SpatialTransformer, regress_homography
 
@@ -313,7 +313,7 @@ class Recognizer(nn.Module):
             N = g.num_anchors
             first = index - g.anchor_index[index]          # anchors of a plane are contiguous
             candidates = first[:, None] + torch.arange(N, device=index.device)
-            appearance = appearance_distance(g.images[candidates], warped[:, None])
+            appearance = anchor_distances(g.images[candidates], warped)
             index = candidates.gather(1, appearance.argmin(1, keepdim=True))[:, 0]
         query_H_canon = None
         if query_H_anchor is not None:

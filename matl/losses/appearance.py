@@ -27,6 +27,19 @@ def appearance_distance(anchors: torch.Tensor, warped: torch.Tensor, levels: int
     return total / levels
 
 
+def anchor_distances(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1) -> torch.Tensor:
+    """``L^a(I_i^a, s(I^p))`` of each anchor of a bag (paper Eq. 3's argument):
+    ``(anchors (B, N, 3, H, W), warped (B, 3, H, W)) -> (B, N)``.
+
+    The one computation behind the multiple-anchor loss, the selection layer and the recognizer's
+    ``anchor_choice=appearance``; ``levels`` as in :func:`appearance_distance`.
+    """
+    if anchors.ndim != 5 or warped.ndim != 4 or anchors.shape[0] != warped.shape[0]:
+        raise ValueError(f"anchors must be (B, N, 3, H, W) and warped (B, 3, H, W), got "
+                         f"{tuple(anchors.shape)} and {tuple(warped.shape)}")
+    return appearance_distance(anchors, warped[:, None].expand_as(anchors), levels)
+
+
 def _half(images: torch.Tensor) -> torch.Tensor:
     pooled = F.avg_pool2d(images.reshape(-1, *images.shape[-3:]), 2, ceil_mode=True)
     return pooled.reshape(*images.shape[:-2], *pooled.shape[-2:])
@@ -57,6 +70,6 @@ class MultiAnchorAppearanceLoss(nn.Module):
         self.levels = levels
 
     def forward(self, anchors: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        distances = appearance_distance(anchors, warped[:, None].expand_as(anchors), self.levels)  # (B, N)
+        distances = anchor_distances(anchors, warped, self.levels)  # (B, N)
         best, selected = distances.min(dim=1)
         return best.mean(), selected

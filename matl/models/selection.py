@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from matl.losses.appearance import appearance_distance
+from matl.losses.appearance import anchor_distances
 
 
 class AnchorSelection(nn.Module):
@@ -16,8 +16,5 @@ class AnchorSelection(nn.Module):
     """
 
     def forward(self, anchors: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if anchors.ndim != 5 or warped.ndim != 4 or anchors.shape[0] != warped.shape[0]:
-            raise ValueError(f"anchors must be (B, N, 3, H, W) and warped (B, 3, H, W), got "
-                             f"{tuple(anchors.shape)} and {tuple(warped.shape)}")
-        distances = appearance_distance(anchors, warped[:, None])
+        distances = anchor_distances(anchors, warped)
         return distances.detach().argmin(dim=1), distances

@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
-from matl.losses import AppearanceLoss, MultiAnchorAppearanceLoss, NCELoss, TripletLoss, appearance_distance
+from matl.losses import (
+    AppearanceLoss,
+    MultiAnchorAppearanceLoss,
+    NCELoss,
+    TripletLoss,
+    anchor_distances,
+    appearance_distance,
+)
 from matl.models.selection import AnchorSelection
 
 
@@ -26,6 +34,19 @@ def test_multi_anchor_appearance_takes_min_and_selects() -> None:
     loss, selected = MultiAnchorAppearanceLoss()(anchors, warped)
     assert selected.tolist() == [1, 2]
     assert math.isclose(float(loss), (0.1 + 0.05) / 2, rel_tol=1e-5)
+
+
+def test_anchor_distances_hand_computed_with_a_pyramid() -> None:
+    warped = torch.zeros(1, 3, 2, 2)
+    anchors = torch.zeros(1, 2, 3, 2, 2)
+    anchors[0, 1, :, 0, 0] = 0.8   # one pixel of 4: level 0 L1 = 0.2; the 2x2 average (0.2) at level 1: 0.2
+    assert torch.allclose(anchor_distances(anchors, warped), torch.tensor([[0.0, 0.2]]))
+    assert torch.allclose(anchor_distances(anchors, warped, levels=2), torch.tensor([[0.0, 0.2]]))
+    anchors[0, 1, :, 0, 1] = -0.8  # cancels at level 1: (0.4 + 0) / 2
+    assert torch.allclose(anchor_distances(anchors, warped, levels=2), torch.tensor([[0.0, 0.2]]))
+    assert torch.allclose(anchor_distances(anchors, warped), torch.tensor([[0.0, 0.4]]))
+    with pytest.raises(ValueError, match=r"anchors must be \(B, N, 3, H, W\)"):
+        anchor_distances(anchors[0], warped)
 
 
 def test_selection_layer_picks_true_nearest_anchor() -> None:
