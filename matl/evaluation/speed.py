@@ -23,7 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from matl.utils.config import validate_config
-from matl.utils.errors import MatlError
+from matl.utils.errors import CONF_DIR, MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
 from matl.utils.timing import median_query_ms
@@ -285,7 +285,7 @@ def _query_path(recognizer: Any, query: torch.Tensor) -> str:
 
 def _default_faiss_node() -> DictConfig:
     """``conf/search/faiss.yaml``, for the faiss timing when the run's search is exact."""
-    path = Path(__file__).resolve().parents[1] / "conf" / "search" / "faiss.yaml"
+    path = CONF_DIR / "search" / "faiss.yaml"
     node = OmegaConf.load(path)
     assert isinstance(node, DictConfig)
     return node

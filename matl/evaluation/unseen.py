@@ -32,7 +32,7 @@ from matl.utils.errors import MatlError
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SYNTHETIC = "matl.data.catalog.SyntheticCatalog"
 CROP_FILL = 0.6  # the catalogs frame each plane's longer side at 0.6 of the image (data.source.fill)
 WARP_BATCH = 250

@@ -123,7 +123,7 @@ class MATLModule(PoseEvaluationModule):
                 f"(metric {loss_metric.item():.4g}, appearance {loss_app.item():.4g}): lower model.optimizer.lr "
                 "or lam; checkpoints/last.ckpt holds the last good state")
         B = len(anchors)
-        # STN outputs replaced by identity (SpatialTransformer._guard), summed over the epoch
+        # STN outputs replaced by identity (matl.geometry.guard_homographies), summed over the epoch
         self.log("train/degenerate_stn", float(self.degenerate_count - degenerate_before), on_step=False,
                  on_epoch=True, reduce_fx="sum", batch_size=B)
         self.log_dict({"train/loss": loss, "train/appearance": loss_app, "train/metric": loss_metric},
