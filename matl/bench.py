@@ -20,7 +20,7 @@ Speed is measured against a reference measured *in the same run* on the same mac
   gallery entries, so each has a true nearest neighbour), plus the fixed STN + feature cost of a
   query measured once on real images (``fixed_query_ms``). With faiss, its latency, build time and
   recall@1 against exact search are listed too.
-* ``render_images_per_s``: canonical renders of ``data.source`` (:func:`matl.data.views.render_images_per_s`).
+* ``render_images_per_s``: canonical renders of ``data.source`` (:func:`matl.data.render_speed.render_images_per_s`).
 
 ``bench.quick=true`` merges ``bench_quick`` over ``bench``: a smoke run of a few seconds (the tests'),
 whose numbers are not measurements.

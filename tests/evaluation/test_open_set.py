@@ -42,7 +42,7 @@ def test_left_out_products_are_a_seeded_fraction() -> None:
     assert left_out_products(names, 0.0, 3) == []
 
 
-def test_unseen_open_set_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> None:  # noqa: F811
+def test_unseen_open_set_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> None:
     out = tmp_path / "open"
     result = unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "queries=24", f"out={out}", "leave_out=0.5",
                                               f"paths.cache_dir={cache_dir}"], tmp_path / "run"))
