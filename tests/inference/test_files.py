@@ -175,3 +175,33 @@ def test_cli_prints_one_line_and_exits_2(module: str, args: list[str], tmp_path:
     assert "Traceback" not in proc.stderr + proc.stdout
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
     assert len(errors) == 1 and "/nonexistent" in errors[0]
+
+
+def test_predict_exit_codes_when_inputs_are_bad(tiny_run: Path, tmp_path: Path) -> None:
+    """All bad: one line naming the files, exit 2, nothing written; some bad: the rest predicted, exit 0."""
+    ckpt = tiny_run / "checkpoints" / "best.ckpt"
+    gallery, queries, _ = make_files(tmp_path)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "notes.txt").write_text("not an image")
+    (bad / "empty.png").write_bytes(b"")
+    out = tmp_path / "out" / "pred.jsonl"
+    message = r"no readable image among 2 file\(s\).*empty.png.*notes.txt.*nothing was written"
+    with pytest.raises(MatlError, match=message):
+        predict(predict_cfg(tmp_path, ckpt, gallery, bad))
+    assert not out.exists()
+    with pytest.raises(MatlError, match="no readable image among 1 file"):
+        predict(predict_cfg(tmp_path, ckpt, gallery, bad / "notes.txt"))
+    assert not out.exists()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    args = [sys.executable, "-m", "matl.predict", f"ckpt={ckpt}", f"gallery={gallery}", f"out={out}",
+            f"hydra.run.dir={tmp_path / 'h'}"]
+    proc = subprocess.run([*args, f"images={bad}"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and not out.exists()
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and "notes.txt" in errors[0]
+    (queries / "notes.txt").write_text("not an image")
+    proc = subprocess.run([*args, f"images={queries}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert len(out.read_text().splitlines()) == 3 and "skipped" in proc.stderr + proc.stdout
