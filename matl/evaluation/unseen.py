@@ -272,7 +272,7 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
                     _arg("out", pred_path), _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill),
                     _arg("batch_size", cfg.batch_size), _arg("device", cfg.device), _arg("refine", cfg.refine),
                     _arg("threshold", "null" if threshold is None else threshold),
-                    _arg("open_set_quantile", cfg.get("open_set_quantile", 0.99))]
+                    _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94))]
     run_predict([*predict_args, _arg("hydra.run.dir", out / "predict")], out)
     open_set = None
     if left_out:

@@ -227,7 +227,7 @@ class Recognizer:
     def __init__(self, model: nn.Module, image_size: int, num_anchors: int, model_id: str, *,
                  device: str = "cpu", refine: bool | PhotometricRefiner | None = False, quantize: str = "none",
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
-                 open_set_statistic: str = "ratio", open_set_quantile: float = 0.99, calibration_warps: int = 8,
+                 open_set_statistic: str = "ratio", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  gallery_fill: float = 1.0,
                  query_fill: float = 1.0, batch_size: int = 64) -> None:
         if quantize not in ("none", "int8"):

@@ -188,7 +188,7 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     search = instantiate_node(cfg.search, "search") if cfg.get("search") is not None else "exact"
     recognizer = Recognizer.from_checkpoint(
         cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg), search=search,
-        threshold=_threshold(cfg), open_set_quantile=float(cfg.get("open_set_quantile", 0.99)),
+        threshold=_threshold(cfg), open_set_quantile=float(cfg.get("open_set_quantile", 0.94)),
         gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:
         raise MatlError(f"checkpoint {cfg.ckpt} was trained at {recognizer.image_size} px, not "
