@@ -1,22 +1,26 @@
-"""``python -m matl.export ckpt=<path> out=<dir> [format=torchscript|export]``: the inference path without matl.
+"""``python -m matl.export ckpt=<path> out=<dir> [format=torchscript|export|onnx]``: the inference path without matl.
 
-Writes two self-contained modules and a description into ``out``:
+Writes two self-contained networks and a description into ``out``:
 
-* ``gallery_net.pt``: ``c()``, ``(B, 3, S, S) -> (B, D)`` embeddings of gallery anchors (enrol once).
-* ``query_net.pt``: ``s()`` then ``c()`` on queries, ``(B, 3, S, S) -> (embedding (B, D),
+* ``gallery_net.<ext>``: ``c()``, ``(B, 3, S, S) -> (B, D)`` embeddings of gallery anchors (enrol once).
+* ``query_net.<ext>``: ``s()`` then ``c()`` on queries, ``(B, 3, S, S) -> (embedding (B, D),
   query_H_anchor (B, 3, 3) pixel homography, degenerate (B,) bool, warped (B, 3, S, S))``.
-* ``export.json``: image size, N, embedding size, the conventions, the checkpoint's sha256, and the
-  largest difference between exported and eager outputs measured right after export.
+* ``export.json``: image size, N, embedding size, the checkpoint's sha256, the largest difference
+  between exported and eager outputs (per network and per output) measured right after export, and
+  what a user of the files alone needs: input layout, outputs, recognition, pose, the anchors'
+  matrices and the mapping to the original image's pixels.
 
 Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
-``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md, "Homographies and their
-frames"), a few lines in any runtime.
+``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md), a few lines in any runtime.
 
-Formats: ``torchscript`` (default; ``torch.jit.load`` in Python or libtorch in C++, no matl or kornia
-needed) or ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``; dynamic batch).
-The query module re-expresses the STN's forward pass with plain torch ops (``grid_sample`` on a
-precomputed grid, the degeneracy guard as ``torch.where``; :class:`matl.inference.recognizer.QueryGraph`)
-so that tracing records no Python branch; the export is checked against the eager model on every
+Formats: ``torchscript`` (default; ``.pt``, ``torch.jit.load`` in Python or libtorch in C++, no matl or
+kornia needed), ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``) or
+``onnx`` (``.onnx``, opset 17, checked in onnxruntime's CPUExecutionProvider; ``pip install -e ".[onnx]"``).
+Every format has a dynamic batch axis. The query network re-expresses the STN's forward pass with
+plain torch ops (``grid_sample`` on a precomputed grid, the degeneracy guard as ``torch.where``;
+:class:`matl.inference.recognizer.QueryGraph`) so that tracing records no Python branch; for ONNX, which
+has no SVD, the guard's singular values are computed in closed form
+(:func:`matl.inference.export.svdvals_3x3`). The export is checked against the eager model on every
 export (tolerance ``tolerance``).
 """
 

@@ -1,4 +1,4 @@
-"""Exporting the query and gallery networks of a checkpoint as TorchScript or torch.export graphs.
+"""Exporting the query and gallery networks of a checkpoint as TorchScript, torch.export or ONNX graphs.
 
 The library side of ``python -m matl.export`` (the command and its options: :mod:`matl.export`).
 """
@@ -8,19 +8,31 @@ from __future__ import annotations
 import json
 import logging
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import torch
 from omegaconf import DictConfig
 from torch import nn
+from torch.overrides import TorchFunctionMode
 
 from matl.utils.errors import MatlError
 from matl.utils.io import write_json
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("torchscript", "export")
+FORMATS = ("torchscript", "export", "onnx")
+SUFFIXES = {"torchscript": ".pt", "export": ".pt2", "onnx": ".onnx"}
+#: output names of the two networks, in order (the ONNX graphs' names too)
+GALLERY_OUTPUTS = ("embedding",)
+QUERY_OUTPUTS = ("embedding", "query_H_anchor", "degenerate", "warped")
+#: 16 is the first opset with GridSample (the STN's warp); 17 is read by every onnxruntime >= 1.12
+ONNX_OPSET = 17
+ONNX_INSTALL = 'pip install -e ".[onnx]"'
+#: squarings of the power iteration in :func:`svdvals_3x3`: the largest eigenvalue to < 1 / (e * 2**24) relative
+_SQUARINGS = 24
 
 
 def __getattr__(name: str) -> Any:
@@ -35,9 +47,136 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def _trace(module: nn.Module, example: torch.Tensor, fmt: str, path: Path) -> Any:
+# ------------------------------------------------------------------------------------------- ONNX
+def require_onnxruntime() -> ModuleType:
+    """``onnxruntime`` (with ``onnx``, which the exporter needs), or a one-line error naming the fix."""
+    try:
+        import onnx  # noqa: F401  (torch.onnx serialises through it)
+        import onnxruntime
+    except ImportError as error:
+        raise MatlError(f"format=onnx needs onnx and onnxruntime ({error.name} is not installed): "
+                        f"{ONNX_INSTALL}") from None
+    return onnxruntime
+
+
+def _largest_eigenvalue(A: torch.Tensor) -> torch.Tensor:
+    """Largest eigenvalue ``(...,)`` of symmetric positive semi-definite ``(..., 3, 3)`` matrices.
+
+    Power iteration by repeated squaring, ``M <- M @ M / max|M @ M|`` from ``M = A``: after ``k``
+    squarings ``M`` is ``A ** (2 ** k)`` up to scale, all but the dominant eigenspace gone, and the
+    Rayleigh quotient ``trace(A @ M) / trace(M)`` is the eigenvalue to a relative ``1 / (e * 2 ** k)``
+    (whatever the gap to the next eigenvalue; equal eigenvalues are exact). Fixed-size, branch-free
+    tensor ops (an ONNX graph has no eigensolver).
+    """
+    def unit_max(M: torch.Tensor) -> torch.Tensor:
+        top = M.abs().amax(dim=(-2, -1), keepdim=True)
+        return M / torch.where(top > 0, top, 1.0)
+
+    M = unit_max(A)
+    for _ in range(_SQUARINGS):
+        M = unit_max(M @ M)
+    trace = (M * torch.eye(3, dtype=M.dtype, device=M.device)).sum((-2, -1))  # not diagonal(): an ONNX If node
+    return torch.where(trace > 0, (A * M).sum((-2, -1)) / torch.where(trace > 0, trace, 1.0), 0.0)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Cross products of ``(..., 3)`` vectors by their components (``torch.linalg.cross`` has no ONNX export)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+
+
+def svdvals_3x3(H: torch.Tensor) -> torch.Tensor:
+    """``torch.linalg.svdvals`` of ``(B, 3, 3)`` matrices, ``(B, 3)`` largest first, as plain tensor ops.
+
+    ONNX has no singular value decomposition; the STN's degeneracy guard
+    (:func:`matl.geometry.degenerate_homographies`) needs the largest and the smallest singular value.
+    In float64, on ``H`` scaled to a largest entry of 1: ``s1 = sqrt(lmax(H^T H))``; the singular values
+    of the adjugate are ``s1 s2, s1 s3, s2 s3``, so ``s1 s2 = sqrt(lmax(adj^T adj))`` and
+    ``s3 = |det H| / (s1 s2)`` (relatively accurate however small, unlike an eigenvalue next to
+    ``s1 ** 2``); ``lmax`` is :func:`_largest_eigenvalue`. Singular matrices give ``s3 = 0``
+    (``s2 = 0`` too at rank 1). Agrees with ``svdvals`` to float rounding (checked in the tests).
+    """
+    X = H.double()
+    scale = X.abs().amax(dim=(-2, -1), keepdim=True)
+    X = X / torch.where(scale > 0, scale, 1.0)
+    r0, r1, r2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
+    cofactors = torch.stack([_cross(r1, r2), _cross(r2, r0), _cross(r0, r1)], -2)  # rows of the cofactor matrix
+    det = (r0 * cofactors[..., 0, :]).sum(-1)
+    gram = torch.stack([X.transpose(-2, -1) @ X, cofactors.transpose(-2, -1) @ cofactors], -3)  # (B, 2, 3, 3)
+    top = _largest_eigenvalue(gram).clamp_min(0.0).sqrt()                                       # (B, 2)
+    s1, s12 = top[..., 0], top[..., 1]
+    s2 = torch.where(s1 > 0, s12 / torch.where(s1 > 0, s1, 1.0), 0.0)
+    s3 = torch.minimum(torch.where(s12 > 0, det.abs() / torch.where(s12 > 0, s12, 1.0), 0.0), s2)
+    return (torch.stack([s1, s2, s3], -1) * scale[..., 0]).to(H.dtype)
+
+
+class _OnnxTraceable(TorchFunctionMode):
+    """While tracing for ONNX: ``torch.linalg.svdvals`` (no ONNX operator) of 3x3 batches as :func:`svdvals_3x3`.
+
+    A torch function mode changes what the trace records, not the module: the eager networks, their
+    TorchScript and torch.export graphs keep the LAPACK SVD."""
+
+    def __torch_function__(self, func: Callable[..., Any], types: Any, args: tuple[Any, ...] = (),
+                           kwargs: dict[str, Any] | None = None) -> Any:
+        kwargs = kwargs or {}
+        if func is torch.linalg.svdvals and not kwargs and args[0].shape[-2:] == (3, 3):
+            return svdvals_3x3(args[0])
+        return func(*args, **kwargs)
+
+
+class OnnxNetwork:
+    """An exported ``.onnx`` network in onnxruntime (CPUExecutionProvider), called like the torch module.
+
+    ``network(images (B, 3, S, S) float32 tensor)`` returns the outputs as CPU tensors: the tuple of
+    ``output_names`` (the query network), or the one tensor of a single-output network (the gallery's).
+
+    Args:
+        path: the ``.onnx`` file.
+        threads: onnxruntime's intra-op threads (None: its default, all cores).
+    """
+
+    def __init__(self, path: str | Path, threads: int | None = None) -> None:
+        ort = require_onnxruntime()
+        options = ort.SessionOptions()
+        if threads is not None:
+            options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
+        self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        self.input_name = self.session.get_inputs()[0].name
+        self.output_names = tuple(o.name for o in self.session.get_outputs())
+
+    def __call__(self, images: torch.Tensor) -> tuple[torch.Tensor, ...] | torch.Tensor:
+        feed = {self.input_name: images.detach().to("cpu", torch.float32).contiguous().numpy()}
+        outputs = tuple(torch.from_numpy(o) for o in self.session.run(None, feed))
+        return outputs if len(outputs) > 1 else outputs[0]
+
+
+def _export_onnx(module: nn.Module, example: torch.Tensor, path: Path, outputs: tuple[str, ...]) -> OnnxNetwork:
+    """Write ``module`` as ONNX with a dynamic batch axis; returns it loaded in onnxruntime.
+
+    The TorchScript-based exporter (``dynamo=False``): with torch 2.13 it records the same graph as
+    the torch.export-based one (``dynamo=True``, checked: identical outputs) in a few seconds instead
+    of a minute, and needs only ``onnx``, where ``dynamo=True`` also needs ``onnxscript``. It is
+    deprecated (hence the filtered warning); :class:`_OnnxTraceable` works for both, so switching is
+    the one argument and ``dynamic_shapes`` for ``dynamic_axes``.
+    """
+    require_onnxruntime()
+    axes = {name: {0: "batch"} for name in ("images", *outputs)}
+    with warnings.catch_warnings(), _OnnxTraceable():
+        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
+        warnings.filterwarnings("ignore", message=".*Converting a tensor to a Python.*")
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        torch.onnx.export(module, (example,), str(path), dynamo=False, input_names=["images"],
+                          output_names=list(outputs), dynamic_axes=axes, opset_version=ONNX_OPSET)
+    return OnnxNetwork(path)
+
+
+# ---------------------------------------------------------------------------------------- export
+def _trace(module: nn.Module, example: torch.Tensor, fmt: str, path: Path, outputs: tuple[str, ...]) -> Any:
     """Export ``module`` in ``fmt`` to ``path``; returns the loaded exported module (callable)."""
     module.eval()
+    if fmt == "onnx":
+        return _export_onnx(module, example, path, outputs)
     if fmt == "torchscript":
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*torch.jit.trace.*deprecated")
@@ -53,22 +192,82 @@ def _trace(module: nn.Module, example: torch.Tensor, fmt: str, path: Path) -> An
         return torch.export.load(str(path)).module()
 
 
-def _max_diff(eager: Any, exported: Any) -> float:
-    """Largest absolute difference between (tuples of) eager and exported outputs; inf on a shape mismatch."""
+def _max_diffs(eager: Any, exported: Any, names: tuple[str, ...]) -> dict[str, float]:
+    """Largest absolute difference per output between (tuples of) eager and exported outputs; inf on a
+    shape mismatch (booleans compare as 0 / 1)."""
     eager = eager if isinstance(eager, tuple) else (eager,)
     exported = exported if isinstance(exported, tuple) else (exported,)
-    worst = 0.0
-    for a, b in zip(eager, exported, strict=True):
+    diffs = {}
+    for name, a, b in zip(names, eager, exported, strict=True):
         if a.shape != b.shape:
-            return float("inf")
-        worst = max(worst, float((a.double() - b.double()).abs().max()) if a.numel() else 0.0)
-    return worst
+            diffs[name] = float("inf")
+        else:
+            diffs[name] = float((a.double() - b.double()).abs().max()) if a.numel() else 0.0
+    return diffs
+
+
+def _fixed_anchor_matrices(num_anchors: int, image_size: int) -> list[list[list[float]]]:
+    """``anchor_k_H_canon`` of the fixed anchors, ``N`` pixel 3x3 matrices as nested lists."""
+    from matl.geometry import anchor_H_canon
+
+    return anchor_H_canon(num_anchors, (image_size, image_size), torch.float64).tolist()
+
+
+def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pose: bool) -> dict[str, Any]:
+    """What ``export.json`` tells a user of the exported files alone (C++, ROS): how to load them, what
+    goes in, what comes out, and how recognition, pose and original-image pixels follow."""
+    S = int(image_size)
+    notes: dict[str, Any] = {
+        "inputs": f"float32 (B, 3, S, S) RGB in [0, 1] (row-major, channels first), S = image_size = {S}; "
+                  "background 0 (foreground-segmented); any batch size B >= 1",
+        "to_model_frame": "matl.data.image_files.fit_to_model: an h x w image is resized, keeping its aspect, "
+                          "so its longer side spans fill * S pixels (fill: predict's gallery_fill / query_fill, "
+                          "default 1; the synthetic catalogs frame planes at 0.6): new_w = min(S, max(1, "
+                          "round(w * s))), new_h likewise, s = fill * S / max(h, w); antialiased bilinear "
+                          "(half-pixel centres), clamped to [0, 1]; then pasted at left = (S - new_w) // 2, "
+                          "top = (S - new_h) // 2 on zeros",
+        "model_H_file": "file pixel -> model pixel: [[new_w / w, 0, 0.5 * new_w / w - 0.5 + left], "
+                        "[0, new_h / h, 0.5 * new_h / h - 0.5 + top], [0, 0, 1]]",
+        "gallery_net": "(B, 3, S, S) -> embedding (B, D): c(anchor image)",
+        "gallery": "per plane: its canonical image fitted to the model frame (8-bit quantised: round(255 x) / 255), "
+                   "then each anchor k = 0..N-1 warped from it by anchor_k_H_canon (bilinear, zeros outside: "
+                   "anchor(x) = canon(inv(anchor_k_H_canon) x)); embed all P * N anchors once",
+        "recognition": "the gallery anchor whose embedding is nearest (L2) to the query's embedding (paper Sec. "
+                       "4.5); its plane and object are the answer",
+        "pixel_convention": "pixel homographies on model-frame pixels, (0, 0) = centre of the top-left pixel, "
+                            "x right, y down, H[2, 2] = 1 (docs/design.md)",
+    }
+    if num_anchors is not None:
+        notes["anchors"] = (f"anchor k = canonical image rotated by k * 360 / N degrees (N = {num_anchors}) about "
+                            f"the image centre ((S - 1) / 2, (S - 1) / 2), counter-clockwise on screen: "
+                            "anchor_k_H_canon = [[c, s, tx], [-s, c, ty], [0, 0, 1]], c = cos, s = sin of the "
+                            "angle, tx = cx - c cx - s cy, ty = cy + s cx - c cy")
+        notes["anchor_k_H_canon"] = _fixed_anchor_matrices(num_anchors, S)
+    if has_pose:
+        notes["query_net"] = ("(B, 3, S, S) -> embedding (B, D), query_H_anchor (B, 3, 3) float32 pixel homography, "
+                              "degenerate (B,) bool, warped (B, 3, S, S) (the query in its anchor's frame)")
+        notes["pose"] = ("query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor (in float64, "
+                         "then divided by its [2, 2]): maps canonical model pixels to query model pixels")
+        notes["degenerate"] = ("true: the STN's homography was unusable (non-finite or condition number >= "
+                               "max_condition) and was replaced by the identity; the pose is then not an estimate")
+        notes["pose_in_files"] = ("query_file_H_gallery_file = inv(model_H_file of the query) @ query_H_canon @ "
+                                  "model_H_file of the gallery image (matl.data.image_files.pose_in_files); "
+                                  "warping the gallery file by it (cv2.warpPerspective) lands on the query file")
+    else:
+        notes["query_net"] = "(B, 3, S, S) -> embedding (B, D) (no STN: no pose)"
+    if fmt == "onnx":
+        notes["runtime"] = (f"ONNX opset {ONNX_OPSET}, input 'images', outputs "
+                            f"{list(QUERY_OUTPUTS if has_pose else GALLERY_OUTPUTS)} (gallery_net: ['embedding']), "
+                            "batch axis dynamic; onnxruntime (C++: Ort::Session) with the CPUExecutionProvider is "
+                            "what the export is checked with")
+    return notes
 
 
 @torch.no_grad()
 def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: int, out_dir: str | Path,
-                     fmt: str = "torchscript", tolerance: float = 1e-5, check_batches: tuple[int, ...] = (1, 3),
-                     meta: dict[str, Any] | None = None, seed: int = 0) -> dict[str, Any]:
+                     fmt: str = "torchscript", tolerance: float = 1e-4, check_batches: tuple[int, ...] = (1, 3),
+                     meta: dict[str, Any] | None = None, seed: int = 0,
+                     num_anchors: int | None = None) -> dict[str, Any]:
     """Export the gallery and query networks, check them against the eager ones, write ``export.json``.
 
     Args:
@@ -77,31 +276,37 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
             only the embedding).
         image_size: ``S``.
         out_dir: destination folder (created).
-        fmt: ``torchscript`` or ``export``.
-        tolerance: largest accepted absolute difference between exported and eager outputs.
+        fmt: ``torchscript``, ``export`` or ``onnx`` (run in onnxruntime for the check).
+        tolerance: largest accepted absolute difference between exported and eager outputs (1e-4, as
+            the compiled query path's: a trained 100 px model differs by ~3e-5 in float32 rounding alone,
+            pixel homography entries being up to ~100).
         check_batches: batch sizes checked (random images, and the same images brightened), so a
             batch size baked into the export would be caught.
         meta: extra fields for ``export.json`` (N, checkpoint, ...).
+        num_anchors: ``N`` of the fixed anchors, for their matrices in ``export.json`` (None: left out).
     Returns:
-        ``export.json``'s content.
+        ``export.json``'s content; ``max_abs_diff`` per network, ``max_abs_diff_by_output`` per output.
     Raises:
-        MatlError: unknown format, or outputs differ by more than ``tolerance``.
+        MatlError: unknown format, ``onnx`` without onnxruntime, or an output that differs by more than
+            ``tolerance``.
     """
     if fmt not in FORMATS:
         raise MatlError(f"format={fmt} is invalid: use {' or '.join(FORMATS)}")
+    if fmt == "onnx":
+        require_onnxruntime()  # before any work
     from matl.inference.recognizer import QueryGraph
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
-    suffix = ".pt" if fmt == "torchscript" else ".pt2"
     feature_net = feature_net.eval().cpu()
     query_net: nn.Module = QueryGraph(stn.eval().cpu(), feature_net) if stn is not None else feature_net
+    query_outputs = QUERY_OUTPUTS if stn is not None else GALLERY_OUTPUTS
     g = torch.Generator().manual_seed(seed)
     example = torch.rand(2, 3, image_size, image_size, generator=g)
 
-    files = {"gallery_net": out / f"gallery_net{suffix}", "query_net": out / f"query_net{suffix}"}
-    gallery_exported = _trace(feature_net, example, fmt, files["gallery_net"])
-    query_exported = _trace(query_net, example, fmt, files["query_net"])
+    files = {"gallery_net": out / f"gallery_net{SUFFIXES[fmt]}", "query_net": out / f"query_net{SUFFIXES[fmt]}"}
+    gallery_exported = _trace(feature_net, example, fmt, files["gallery_net"], GALLERY_OUTPUTS)
+    query_exported = _trace(query_net, example, fmt, files["query_net"], query_outputs)
 
     def eager_query(x: torch.Tensor) -> tuple[torch.Tensor, ...] | torch.Tensor:
         if stn is None:
@@ -109,30 +314,32 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
         result = stn(x)
         return feature_net(result.warped), result.query_H_anchor, result.degenerate, result.warped
 
-    diffs = {"gallery_net": 0.0, "query_net": 0.0}
+    by_output = {"gallery_net": dict.fromkeys(GALLERY_OUTPUTS, 0.0), "query_net": dict.fromkeys(query_outputs, 0.0)}
     for batch in check_batches:
         images = torch.rand(batch, 3, image_size, image_size, generator=g)
         for x in (images, (images * 1.5).clamp(0, 1)):
-            diffs["gallery_net"] = max(diffs["gallery_net"], _max_diff(feature_net(x), gallery_exported(x)))
-            diffs["query_net"] = max(diffs["query_net"], _max_diff(eager_query(x), query_exported(x)))
-    for name, diff in diffs.items():
-        if not diff <= tolerance:
-            raise MatlError(f"exported {name} differs from the eager model by {diff:.3g} > tolerance {tolerance:g}")
+            for name, diffs in (("gallery_net", _max_diffs(feature_net(x), gallery_exported(x), GALLERY_OUTPUTS)),
+                                ("query_net", _max_diffs(eager_query(x), query_exported(x), query_outputs))):
+                for output, diff in diffs.items():
+                    by_output[name][output] = max(by_output[name][output], diff)
+    for name, diffs in by_output.items():
+        for output, diff in diffs.items():
+            if not diff <= tolerance:
+                raise MatlError(f"exported {name} output {output} differs from the eager model by {diff:.3g} > "
+                                f"tolerance {tolerance:g} ({', '.join(f'{k} {v:.3g}' for k, v in diffs.items())})")
 
     embedding_dim = int(feature_net(example[:1]).shape[1])
     info: dict[str, Any] = {
         "format": fmt, "files": {k: v.name for k, v in files.items()}, "image_size": int(image_size),
-        "embedding_dim": embedding_dim, "torch": torch.__version__, "max_abs_diff": diffs,
-        "tolerance": tolerance, "checked_batch_sizes": list(check_batches),
-        "inputs": "float32 (B, 3, S, S) RGB in [0, 1], background 0 (foreground-segmented), S = image_size",
-        "gallery_net": "(B, 3, S, S) -> embedding (B, D): c(anchor)",
-        "query_net": ("(B, 3, S, S) -> embedding (B, D), query_H_anchor (B, 3, 3), degenerate (B,), warped (B, 3, S, S)"
-                      if stn is not None else "(B, 3, S, S) -> embedding (B, D) (no STN: no pose)"),
-        "recognition": "argmin over gallery anchors of the L2 distance between embeddings (paper Sec. 4.5)",
-        "pose": "query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor; pixel homographies, "
-                "(0, 0) = centre of the top-left pixel, H[2, 2] = 1 (DESIGN §2)",
-        **(meta or {}),
+        "embedding_dim": embedding_dim, "torch": torch.__version__,
+        "max_abs_diff": {name: max(diffs.values()) for name, diffs in by_output.items()},
+        "max_abs_diff_by_output": by_output, "tolerance": tolerance, "checked_batch_sizes": list(check_batches),
     }
+    if fmt == "onnx":
+        info["onnxruntime"] = require_onnxruntime().__version__
+        info["checked_with"] = "onnxruntime CPUExecutionProvider"
+    info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None))
+    info.update(meta or {})
     write_json(out / "export.json", info)
     return info
 
@@ -145,11 +352,14 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         raise MatlError(f"checkpoint {cfg.ckpt} not found")
     if str(cfg.format) not in FORMATS:
         raise MatlError(f"format={cfg.format} is invalid: use {' or '.join(FORMATS)}")
-    from matl.inference.files import load_predictor
-    model, size, num_anchors, sha = load_predictor(cfg.ckpt)
+    if str(cfg.format) == "onnx":
+        require_onnxruntime()
+    from matl.inference.api import load_embedding_model
+    model, size, num_anchors, sha = load_embedding_model(cfg.ckpt)
     stn = getattr(model, "stn", None)
     meta = {"N": num_anchors, "checkpoint": str(cfg.ckpt), "checkpoint_sha256": sha,
             "fixed_anchors": "anchor k = canonical image rotated by k * 360 / N degrees about the centre"}
-    info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta)
+    info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta,
+                            num_anchors=num_anchors)
     log.info("export: %s", json.dumps(info))
     return info

@@ -1,8 +1,9 @@
-"""matl.export: exported gallery and query networks agree with the eager model (tolerance 1e-5)."""
+"""matl.export: exported gallery and query networks (TorchScript, torch.export, ONNX) agree with the eager model."""
 
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -11,9 +12,10 @@ import pytest
 import torch
 from torch import nn
 
-from matl.inference.export import QueryNet, export, export_inference
+from matl.inference.export import QueryNet, export, export_inference, svdvals_3x3
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
+from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes, write_tiny_checkpoint
 
@@ -57,7 +59,7 @@ class ConstantRegressor(nn.Module):
         self.register_buffer("H", H)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.H[: len(images)]
+        return self.H[: images.shape[0]]  # a size the ONNX trace keeps dynamic (len() would be a constant)
 
 
 def test_query_net_guard_equals_the_stn_guard() -> None:
@@ -89,3 +91,89 @@ def test_export_from_a_checkpoint_and_cli_errors(tmp_path: Path, cache_dir: Path
     bad = subprocess.run([sys.executable, "-m", "matl.export", f"ckpt={tmp_path / 'none.ckpt'}",
                           f"hydra.run.dir={tmp_path / 'run2'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "not found" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------------------------------- ONNX
+def test_closed_form_singular_values_equal_svdvals() -> None:
+    c, s = math.cos(0.3), math.sin(0.3)
+    rotation = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    hand = torch.stack([rotation @ torch.diag(torch.tensor([3.0, 2.0, 0.5], dtype=torch.float64)) @ rotation.T,
+                        torch.zeros(3, 3, dtype=torch.float64),                     # all zero
+                        torch.outer(torch.tensor([1.0, 2.0, 2.0]), torch.tensor([0.0, 3.0, 4.0])).double(),  # rank 1
+                        torch.eye(3, dtype=torch.float64) * 7])
+    expected = torch.tensor([[3.0, 2.0, 0.5], [0.0, 0.0, 0.0], [15.0, 0.0, 0.0], [7.0, 7.0, 7.0]], dtype=torch.float64)
+    assert torch.allclose(svdvals_3x3(hand), expected, rtol=1e-12, atol=1e-12)
+
+    g = torch.Generator().manual_seed(0)
+    H = torch.randn(4000, 3, 3, generator=g, dtype=torch.float64)
+    H[:400, 2] = H[:400, 1] + H[:400, 2] * torch.logspace(-8, 0, 400, dtype=torch.float64)[:, None]  # ill-conditioned
+    ref, got = torch.linalg.svdvals(H), svdvals_3x3(H)
+    assert float(((got - ref).abs() / ref[:, :1]).max()) < 1e-12
+    assert float(((got[:, 2] - ref[:, 2]).abs() / ref[:, 2]).max()) < 1e-6  # the smallest one relatively too
+    for limit in (1e2, 1e4, 1e6):  # the guard's decision is the same
+        assert torch.equal(got[:, 2] * limit <= got[:, 0], ref[:, 2] * limit <= ref[:, 0])
+    assert svdvals_3x3(H.float()).dtype == torch.float32
+
+
+def test_onnx_export_runs_in_onnxruntime_like_eager(tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    from matl.inference.export import OnnxNetwork
+
+    feature_net, stn = tiny_networks(2)
+    info = export_inference(feature_net, stn, S, tmp_path, "onnx", tolerance=1e-5)
+    assert info["files"] == {"gallery_net": "gallery_net.onnx", "query_net": "query_net.onnx"}
+    assert set(info["max_abs_diff_by_output"]["query_net"]) == {"embedding", "query_H_anchor", "degenerate", "warped"}
+    assert max(info["max_abs_diff"].values()) <= 1e-5 and info["checked_batch_sizes"] == [1, 3]
+    gallery_net, query_net = OnnxNetwork(tmp_path / "gallery_net.onnx"), OnnxNetwork(tmp_path / "query_net.onnx")
+    assert query_net.output_names == ("embedding", "query_H_anchor", "degenerate", "warped")
+    for batch in (1, 3):
+        images = textured_planes(batch, S, batch)
+        with torch.no_grad():
+            emb, H, degenerate, warped = query_net(images)
+            ref = stn(images)
+            assert torch.allclose(emb, feature_net(ref.warped), atol=1e-5)
+            assert torch.allclose(H, ref.query_H_anchor, atol=1e-5)
+            assert torch.allclose(warped, ref.warped, atol=1e-5)
+            assert degenerate.dtype == torch.bool and torch.equal(degenerate, ref.degenerate)
+            assert torch.allclose(gallery_net(images), feature_net(images), atol=1e-5)
+    assert not torch.allclose(H, torch.eye(3).expand_as(H), atol=1e-3)  # a real homography was compared
+
+
+def test_onnx_query_net_guard_equals_the_stn_guard(tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    from matl.inference.export import OnnxNetwork
+
+    bad = torch.stack([torch.full((3, 3), float("nan")), torch.zeros(3, 3), torch.diag(torch.tensor([1.0, 1.0, 1e-5])),
+                       torch.eye(3) * 1.1])  # non-finite, zero, condition 1e5 > 1e4: identity; the last one kept
+    stn = SpatialTransformer(ConstantRegressor(bad), image_size=S).eval()  # type: ignore[arg-type]
+    export_inference(FeatureNet(), stn, S, tmp_path, "onnx", check_batches=(4,))
+    images = textured_planes(4, S, 3)
+    _, H, degenerate, _ = OnnxNetwork(tmp_path / "query_net.onnx")(images)
+    assert degenerate.tolist() == stn(images).degenerate.tolist() == [True, True, True, False]
+    assert torch.allclose(H[:3], torch.eye(3).expand(3, 3, 3), atol=1e-6)
+
+
+def test_onnx_from_a_checkpoint_describes_the_files(tmp_path: Path, cache_dir: Path) -> None:
+    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    ckpt = write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir)
+    out = tmp_path / "exported"
+    info = export(compose_config("export", [f"ckpt={ckpt}", f"out={out}", "format=onnx"], tmp_path / "run"))
+    saved = json.loads((out / "export.json").read_text())
+    assert saved["format"] == "onnx" and saved["N"] == 4 and saved["tolerance"] == 1e-4
+    assert max(info["max_abs_diff"].values()) <= 1e-5
+    # anchor 1 of 4: a quarter turn about ((S - 1) / 2, (S - 1) / 2), counter-clockwise on screen (y down)
+    anchors = torch.tensor(saved["anchor_k_H_canon"], dtype=torch.float64)
+    assert anchors.shape == (4, 3, 3) and torch.equal(anchors[0], torch.eye(3, dtype=torch.float64))
+    quarter = torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, S - 1.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert torch.allclose(anchors[1], quarter, atol=1e-12)
+    for key in ("inputs", "to_model_frame", "model_H_file", "recognition", "pose", "pose_in_files", "runtime"):
+        assert saved[key], key
+    assert "query_H_anchor @ anchor_k_H_canon" in saved["pose"] and "'images'" in saved["runtime"]
+
+
+def test_onnx_without_onnxruntime_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails as if not installed
+    feature_net, stn = tiny_networks()
+    with pytest.raises(MatlError, match=r'onnxruntime is not installed\): pip install -e "\.\[onnx\]"'):
+        export_inference(feature_net, stn, S, tmp_path, "onnx")
+    assert not list(tmp_path.iterdir())  # nothing written
