@@ -10,6 +10,7 @@ import math
 import os
 import platform
 import statistics
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -182,6 +183,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     query_ms["matl"] = by_threads[str(threads)]
     int8 = measure_int8(cfg, datamodule, model, queries, warmup, counts, device)  # quantize=int8 only
     query_ms.update(int8.pop("query_ms"))
+    onnx = measure_onnx(model, gallery, queries, warmup, counts, device)  # with onnxruntime installed
+    query_ms.update(onnx.pop("query_ms"))
     if options.refine:
         refined = RefinedRecognizer(recognizer, instantiate_node(cfg.refiner, "refiner"))
         query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
@@ -223,6 +226,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
         "matl_path": _query_path(recognizer, queries[:1]),
         **int8,
+        **onnx,
     }
     if notes:
         timing["notes"] = notes
@@ -249,6 +253,66 @@ def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Te
     return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "matl_int8_ms_by_threads": by_threads,
             "matl_int8_threads": threads, "matl_int8_build_s": build_s,
             "matl_int8_path": "int8 (FX static quantisation, oneDNN; TorchScript, frozen) + float warps, search, pose"}
+
+
+def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, counts: list[int],
+                 device: torch.device) -> dict[str, Any]:
+    """``query_ms.matl_onnx``: the query network of ``matl.export format=onnx`` in onnxruntime (CPU), batch of 1.
+
+    The model is exported to a temporary folder (checked against the eager model as every export), the
+    gallery embedded by the exported gallery network, and the query timed as ``query_ms.matl``: the same
+    queries and warm-up, at each thread count (onnxruntime's intra-op threads, and torch's for the rest),
+    kept at its fastest. The timed call is a :class:`~matl.inference.recognizer.Recognizer` call whose
+    networks step (``embed_queries``) is the onnxruntime session: the exact gallery search (torch) on
+    the ONNX embeddings and the pose are the eager query's own code. Without onnxruntime, on a GPU run
+    or for a model without an embedding network, ``query_ms`` has no ``matl_onnx`` and
+    ``matl_onnx_skipped`` says why.
+    """
+    from matl.inference.export import OnnxNetwork, export_inference, require_onnxruntime
+
+    try:
+        ort = require_onnxruntime()
+    except MatlError as error:
+        return {"query_ms": {}, "matl_onnx_skipped": str(error)}
+    if device.type != "cpu":
+        return {"query_ms": {}, "matl_onnx_skipped": f"device={device}: onnxruntime is timed on CPU runs only"}
+    feature_net, stn = getattr(model, "feature_net", None), getattr(model, "stn", None)
+    if feature_net is None or not hasattr(model, "build_recognizer"):
+        return {"query_ms": {}, "matl_onnx_skipped": f"{type(model).__name__} has no embedding network to export"}
+    with tempfile.TemporaryDirectory(prefix="matl_bench_onnx_") as folder:
+        start = time.perf_counter()
+        try:
+            info = export_inference(feature_net, stn, int(gallery.image_size), folder, "onnx")
+        except Exception as error:  # an operator onnxruntime refuses, or a check above tolerance: reported
+            return {"query_ms": {}, "matl_onnx_skipped": f"ONNX export failed: {' '.join(str(error).split())[:300]}"}
+        export_s = time.perf_counter() - start
+        gallery_net = OnnxNetwork(Path(folder) / "gallery_net.onnx")
+        networks = {n: OnnxNetwork(Path(folder) / "query_net.onnx", threads=n) for n in counts}
+    model.eval()
+    recognizer = model.build_recognizer(gallery)
+    images = gallery.images.cpu()
+    recognizer.gallery_features = torch.cat([gallery_net(images[i:i + 256]) for i in range(0, len(images), 256)])
+
+    def onnx_query_path(net: OnnxNetwork) -> Callable[[torch.Tensor], tuple[Any, ...]]:
+        """``Recognizer.embed_queries`` by ``net``: ``(embedding, query_H_anchor or None, degenerate, warped)``."""
+        if stn is not None:
+            return net
+        return lambda q: (net(q), None, torch.zeros(len(q), dtype=torch.bool), q)
+
+    by_threads = {}
+    for n, net in networks.items():
+        recognizer.embed_queries = onnx_query_path(net)  # the networks step of Recognizer.forward
+        by_threads[str(n)] = median_query_ms(recognizer, queries.cpu(), warmup, n)
+    threads = int(min(by_threads, key=lambda n: by_threads[n]))
+    with torch.no_grad():
+        eager = model.build_recognizer(gallery)(queries)
+        same = float((recognizer(queries.cpu()).gallery_index == eager.gallery_index.cpu()).float().mean())
+    return {"query_ms": {"matl_onnx": by_threads[str(threads)]}, "matl_onnx_ms_by_threads": by_threads,
+            "matl_onnx_threads": threads, "matl_onnx_export_s": export_s,
+            "matl_onnx_max_abs_diff": info["max_abs_diff_by_output"], "matl_onnx_same_answers": same,
+            "matl_onnx_path": f"onnxruntime {ort.__version__} CPUExecutionProvider (query_net.onnx and "
+                              "gallery_net.onnx of matl.export format=onnx) + the recognizer's exact search and pose "
+                              "(torch); matl_onnx_same_answers: share of the queries whose nearest anchor is eager's"}
 
 
 def thread_counts(options: DictConfig) -> list[int]:
@@ -483,6 +547,9 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
     table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
                   f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
     table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
+    if "matl_onnx" in q or "matl_onnx_skipped" in t:
+        table.add_row("query_ms.matl_onnx", _fmt(q.get("matl_onnx")), t.get("matl_onnx_skipped")
+                      or f"onnxruntime; {t.get('matl_onnx_threads')} thread(s)")
     if "matl_int8" in q:
         table.add_row("query_ms.matl_int8", _fmt(q.get("matl_int8")),
                       t.get("matl_int8_fallback") or f"quantize=int8; {t.get('matl_int8_threads')} thread(s)")

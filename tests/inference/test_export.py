@@ -177,3 +177,27 @@ def test_onnx_without_onnxruntime_is_one_line(tmp_path: Path, monkeypatch: pytes
     with pytest.raises(MatlError, match=r'onnxruntime is not installed\): pip install -e "\.\[onnx\]"'):
         export_inference(feature_net, stn, S, tmp_path, "onnx")
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_bench_onnx_entry_answers_like_the_eager_recognizer(tmp_path: Path, cache_dir: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """``query_ms.matl_onnx`` of matl.bench (matl.evaluation.speed.measure_onnx) times a recognizer whose
+    networks are the exported ONNX files; it finds the anchors eager finds."""
+    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    from matl.evaluation.speed import measure_onnx
+    from matl.inference.api import load_embedding_model
+    from matl.inference.gallery import build_gallery
+
+    model, size, N, _ = load_embedding_model(write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir))
+    canon = (textured_planes(3, size, 4) * 255).round().to(torch.uint8)
+    gallery = build_gallery(canon, [0, 1, 2], ["a", "b", "c"], ["a", "b", "c"], N)
+    queries = gallery.images[[0, 5, 10, 3]]  # anchors themselves: one clear nearest anchor each
+    result = measure_onnx(model, gallery, queries, 1, [1], torch.device("cpu"))
+    ms = result["query_ms"]["matl_onnx"]
+    assert ms > 0 and result["matl_onnx_ms_by_threads"] == {"1": ms}
+    assert result["matl_onnx_same_answers"] == 1.0 and result["matl_onnx_threads"] == 1
+    assert max(result["matl_onnx_max_abs_diff"]["query_net"].values()) <= 1e-5
+
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    skipped = measure_onnx(model, gallery, queries, 1, [1], torch.device("cpu"))
+    assert skipped["query_ms"] == {} and "pip install" in skipped["matl_onnx_skipped"]
