@@ -210,10 +210,12 @@ def _fixed_anchor_matrices(num_anchors: int, image_size: int) -> list[list[list[
     """``anchor_k_H_canon`` of the fixed anchors, ``N`` pixel 3x3 matrices as nested lists."""
     from matl.geometry import anchor_H_canon
 
-    return anchor_H_canon(num_anchors, (image_size, image_size), torch.float64).tolist()
+    matrices = anchor_H_canon(num_anchors, (image_size, image_size), torch.float64).tolist()
+    return [[[round(v, 12) + 0.0 for v in row] for row in H] for H in matrices]  # cos(90 deg) as 0, not 6e-17
 
 
-def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pose: bool) -> dict[str, Any]:
+def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pose: bool,
+                     max_condition: float | None = None) -> dict[str, Any]:
     """What ``export.json`` tells a user of the exported files alone (C++, ROS): how to load them, what
     goes in, what comes out, and how recognition, pose and original-image pixels follow."""
     S = int(image_size)
@@ -244,12 +246,15 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
                             "angle, tx = cx - c cx - s cy, ty = cy + s cx - c cy")
         notes["anchor_k_H_canon"] = _fixed_anchor_matrices(num_anchors, S)
     if has_pose:
-        notes["query_net"] = ("(B, 3, S, S) -> embedding (B, D), query_H_anchor (B, 3, 3) float32 pixel homography, "
-                              "degenerate (B,) bool, warped (B, 3, S, S) (the query in its anchor's frame)")
-        notes["pose"] = ("query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor (in float64, "
+        notes["query_net"] = ("(B, 3, S, S) -> embedding (B, D), query_H_anchor (B, 3, 3) float32 pixel homography "
+                              "(anchor frame -> query: warped(x) = query(query_H_anchor x)), degenerate (B,) bool, "
+                              "warped (B, 3, S, S) (the query in its anchor's frame)")
+        notes["pose"] = ("query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor k (in float64, "
                          "then divided by its [2, 2]): maps canonical model pixels to query model pixels")
-        notes["degenerate"] = ("true: the STN's homography was unusable (non-finite or condition number >= "
-                               "max_condition) and was replaced by the identity; the pose is then not an estimate")
+        limit = f"{max_condition:g}" if max_condition is not None else "max_condition"
+        notes["degenerate"] = (f"true: the STN's homography was unusable (non-finite, or a condition number >= {limit} "
+                               "in normalised coordinates) and was replaced by the identity; the pose is then not an "
+                               "estimate")
         notes["pose_in_files"] = ("query_file_H_gallery_file = inv(model_H_file of the query) @ query_H_canon @ "
                                   "model_H_file of the gallery image (matl.data.image_files.pose_in_files); "
                                   "warping the gallery file by it (cv2.warpPerspective) lands on the query file")
@@ -338,7 +343,8 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
     if fmt == "onnx":
         info["onnxruntime"] = require_onnxruntime().__version__
         info["checked_with"] = "onnxruntime CPUExecutionProvider"
-    info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None))
+    info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None,
+                                 getattr(stn, "max_condition", None)))
     info.update(meta or {})
     write_json(out / "export.json", info)
     return info
