@@ -12,7 +12,8 @@ Speed is measured against a reference measured *in the same run* on the same mac
 * ``query_ms``: median milliseconds per query, batch of 1, ARC-size gallery in memory (all N anchors
   of every plane of ``data``; 152 x 4 = 608 for synthetic_arc), the same ``bench.queries`` test
   queries for every method: ``matl`` (exact search), ``matl_refine`` (plus ``refine=true``),
-  ``matl_faiss`` (``search=faiss``, when installed) and ``sift_ransac`` (``baseline``).
+  ``matl_faiss`` (``search=faiss``, when installed), ``matl_onnx`` (the exported query network in
+  onnxruntime, when installed) and ``sift_ransac`` (``baseline``).
   Without ``ckpt=`` the MATL model is the default config's, untrained (``query_timing.weights``).
 * ``speedup_vs_sift``: ``sift_ransac / matl``; ``refine_added_ms``: ``matl_refine - matl``.
 * ``gallery_scaling``: ``{anchors, query_ms, search_ms, ...}`` for ``bench.scaling_anchors``. The
