@@ -255,7 +255,6 @@ class Recognizer:
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
         self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
-        self._last_queries = torch.zeros(0)
 
     # -------------------------------------------------------------------------------- construction
     @classmethod
@@ -401,15 +400,20 @@ class Recognizer:
             zlib.crc32(f"{plane.object}/{plane.name}".encode()))) for plane in missing]).float()
         canon = torch.stack([p.canon_u8 for p in missing]).float().div(255.0)
         images = warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
-        recognizer, _ = self._build()
-        inner = getattr(recognizer, "recognizer", recognizer)
+        inner = self._gallery_recognizer()
         features = torch.cat([inner.embed_queries(images[i:i + 256])[0] for i in range(0, len(images), 256)])
         for plane, chunk in zip(missing, features.float().cpu().split(self.calibration_warps), strict=True):
             plane.calibration = chunk
 
+    def _gallery_recognizer(self) -> GalleryRecognizer:
+        """The batch recognizer without its refinement wrapper (its networks and gallery features)."""
+        recognizer, _ = self._build()
+        return getattr(recognizer, "recognizer", recognizer)
+
     def _plane_distances(self, features: torch.Tensor) -> torch.Tensor:
-        """``(Q, P)`` distance of each feature to the nearest anchor of every enrolled plane."""
-        gallery = torch.cat([p.features for p in self._planes]).double()
+        """``(Q, P)`` distance of each feature to the nearest anchor of every enrolled plane (the gallery
+        features the search uses: int8 ones with ``quantize=int8``)."""
+        gallery = self._gallery_recognizer().gallery_features.double().cpu()
         d = torch.cdist(features.double().cpu(), gallery)  # (Q, G), anchors plane-major
         return d.view(len(features), len(self._planes), -1).min(2).values
 
@@ -498,8 +502,7 @@ class Recognizer:
         """:meth:`predict` for float RGB ``(H, W, 3)`` arrays, plus the model-frame prediction and the
         model-size query images it came from (for pictures and diagnostics)."""
         with self._lock:
-            matches, pred = self._predict_arrays(arrays)
-            return matches, pred, self._last_queries
+            return self._predict_arrays(arrays)
 
     def predict(self, images: Any, top_k: int = 1) -> Match | list[Match]:
         """Recognise one image or a batch; see :class:`Match`.
@@ -522,12 +525,13 @@ class Recognizer:
                 matches.extend(self._predict_arrays(chunk, top_k)[0])
         return matches[0] if single else matches
 
-    def _predict_arrays(self, arrays: list[np.ndarray], top_k: int = 1) -> tuple[list[Match], Prediction]:
-        """Matches of float RGB ``(H, W, 3)`` arrays, and the model-frame prediction they came from."""
+    def _predict_arrays(self, arrays: list[np.ndarray], top_k: int = 1
+                        ) -> tuple[list[Match], Prediction, torch.Tensor]:
+        """Matches of float RGB ``(H, W, 3)`` arrays, the model-frame prediction they came from and the
+        model-size queries."""
         recognizer, _ = self._build()
         fitted = [fit_to_model(a, self.image_size, self.query_fill) for a in arrays]
         queries = torch.stack([f[0] for f in fitted]).to(self.device)
-        self._last_queries = queries
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
         pred = recognizer(queries)
         plane = pred.plane_index.cpu()
@@ -536,7 +540,9 @@ class Recognizer:
         if pred.query_H_canon is not None:
             H = pose_in_files(pred.query_H_canon.cpu(), canon_H_file[plane], query_H_file)
         threshold = self.threshold
-        features = embed(self.model.feature_net, pred.warped)  # c(s(query)): per-product distances
+        features = pred.features  # c(s(query)), as the search used it: per-product distances
+        if features is None:
+            features = embed(self.model.feature_net, pred.warped)
         by_object, objects = self._object_distances(features)
         own = torch.tensor([objects.index(self._planes[int(p)].object) for p in plane])
         nearest = by_object.gather(1, own[:, None])[:, 0]
@@ -548,7 +554,7 @@ class Recognizer:
             matches.append(self._match(int(plane[i]), int(pred.anchor_index[i]), float(pred.distance[i]),
                                        float(statistic[i]), None if H is None else H[i].numpy(), threshold,
                                        alternatives[i]))
-        return matches, pred
+        return matches, pred, queries
 
     def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,
                threshold: float | None, alternatives: list[Match]) -> Match:

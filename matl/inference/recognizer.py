@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -57,6 +57,8 @@ class Prediction:
     query_H_canon: torch.Tensor | None   # (Q, 3, 3) pixel pose
     warped: torch.Tensor                 # (Q, 3, H, W) s(query)
     degenerate: torch.Tensor             # (Q,) bool, STN output replaced by identity
+    #: (Q, D) c(s(query)), the embeddings the search used; None from recognizers without a feature gallery
+    features: torch.Tensor | None = field(default=None, kw_only=True)
 
 
 @torch.no_grad()
@@ -319,4 +321,4 @@ class Recognizer(nn.Module):
         if query_H_anchor is not None:
             query_H_canon = compose_query_H_canon(query_H_anchor.double(), self._anchor_H_canon64()[index])
         return Prediction(index, g.object_index[index], g.plane_index[index], g.anchor_index[index], distance,
-                          query_H_anchor, query_H_canon, warped, degenerate)
+                          query_H_anchor, query_H_canon, warped, degenerate, features=features)
