@@ -21,6 +21,7 @@ from matl.baselines.ecc import EccRefiner, _scale_homography, corner_shift_px, f
 from matl.baselines.keypoints import MatchResult
 from matl.baselines.sift import SiftRansacMatcher
 from matl.evaluation.evaluate import evaluate
+from tests.baselines.test_keypoints import _rotation
 from tests.conftest import compose_config
 
 SIZE = 100
@@ -51,12 +52,6 @@ def _texture(rng: np.random.Generator) -> np.ndarray:
     y0, x0 = (SIZE - h) // 2, (SIZE - w) // 2
     img[y0 : y0 + h, x0 : x0 + w] = body
     return img
-
-
-def _rotation(angle_deg: float) -> np.ndarray:
-    """3x3 rotation about the image centre (OpenCV's sense)."""
-    c = (SIZE - 1) / 2.0
-    return np.vstack([cv2.getRotationMatrix2D((c, c), angle_deg, 1.0), [0.0, 0.0, 1.0]])
 
 
 def _homography(angle: float, scale: float, shift: tuple[float, float], persp: tuple[float, float]) -> np.ndarray:

@@ -31,22 +31,27 @@ def tiny_networks(seed: int = 0) -> tuple[FeatureNet, SpatialTransformer]:
     return FeatureNet().eval(), stn.eval()
 
 
-def test_torchscript_export_matches_eager_for_any_batch_size(tmp_path: Path) -> None:
-    feature_net, stn = tiny_networks()
-    info = export_inference(feature_net, stn, S, tmp_path, "torchscript")
-    assert info["max_abs_diff"]["gallery_net"] <= 1e-5 and info["max_abs_diff"]["query_net"] <= 1e-5
-    gallery_net = torch.jit.load(str(tmp_path / "gallery_net.pt"))
-    query_net = torch.jit.load(str(tmp_path / "query_net.pt"))
-    images = textured_planes(5, S, 1)  # another batch size than traced (2) and checked (1, 3)
+def assert_matches_eager(gallery_net, query_net, feature_net, stn, images: torch.Tensor) -> torch.Tensor:
+    """Exported networks' outputs equal the eager ``c()`` and ``s()`` within 1e-5; returns their ``query_H_anchor``."""
     with torch.no_grad():
         emb, H, degenerate, warped = query_net(images)
         ref = stn(images)
         assert torch.allclose(emb, feature_net(ref.warped), atol=1e-5)
         assert torch.allclose(H, ref.query_H_anchor, atol=1e-5)
         assert torch.allclose(warped, ref.warped, atol=1e-5)
-        assert torch.equal(degenerate, ref.degenerate)
+        assert degenerate.dtype == torch.bool and torch.equal(degenerate, ref.degenerate)
         assert torch.allclose(gallery_net(images), feature_net(images), atol=1e-5)
-    assert not torch.allclose(H, torch.eye(3).expand_as(H), atol=1e-3)  # a real homography was compared
+    return H
+
+
+def test_torchscript_export_matches_eager_for_any_batch_size(tmp_path: Path) -> None:
+    feature_net, stn = tiny_networks()
+    info = export_inference(feature_net, stn, S, tmp_path, "torchscript")
+    assert info["max_abs_diff"]["gallery_net"] <= 1e-5 and info["max_abs_diff"]["query_net"] <= 1e-5
+    gallery_net = torch.jit.load(str(tmp_path / "gallery_net.pt"))
+    query_net = torch.jit.load(str(tmp_path / "query_net.pt"))
+    H = assert_matches_eager(gallery_net, query_net, feature_net, stn, textured_planes(5, S, 1))  # batch 5: not
+    assert not torch.allclose(H, torch.eye(3).expand_as(H), atol=1e-3)  # traced (2) nor checked; a real homography
     saved = json.loads((tmp_path / "export.json").read_text())
     assert saved["image_size"] == S and saved["embedding_dim"] == 128 and saved["format"] == "torchscript"
 
@@ -127,15 +132,7 @@ def test_onnx_export_runs_in_onnxruntime_like_eager(tmp_path: Path) -> None:
     gallery_net, query_net = OnnxNetwork(tmp_path / "gallery_net.onnx"), OnnxNetwork(tmp_path / "query_net.onnx")
     assert query_net.output_names == ("embedding", "query_H_anchor", "degenerate", "warped")
     for batch in (1, 3):
-        images = textured_planes(batch, S, batch)
-        with torch.no_grad():
-            emb, H, degenerate, warped = query_net(images)
-            ref = stn(images)
-            assert torch.allclose(emb, feature_net(ref.warped), atol=1e-5)
-            assert torch.allclose(H, ref.query_H_anchor, atol=1e-5)
-            assert torch.allclose(warped, ref.warped, atol=1e-5)
-            assert degenerate.dtype == torch.bool and torch.equal(degenerate, ref.degenerate)
-            assert torch.allclose(gallery_net(images), feature_net(images), atol=1e-5)
+        H = assert_matches_eager(gallery_net, query_net, feature_net, stn, textured_planes(batch, S, batch))
     assert not torch.allclose(H, torch.eye(3).expand_as(H), atol=1e-3)  # a real homography was compared
 
 
