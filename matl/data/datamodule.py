@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from matl.data.anchors import FixedAnchors
+from matl.data.augment import CameraAugment
 from matl.data.canonical import CanonicalSet, CanonicalSource, load_canonical
 from matl.data.gallery import Gallery
 from matl.data.queries import QuerySource, make_query_source
@@ -88,6 +89,9 @@ class TripletDataModule(L.LightningDataModule):
             :class:`matl.data.queries.QuerySource`: what this module delegates query sampling and
             image making to (:func:`matl.data.queries.make_query_source`, ``docs/datasets.md``).
         views: options of the rendered view pool (``data.views``), used when ``queries="rendered"``.
+        augment: camera-like positives and negatives (:class:`matl.data.augment.CameraAugment`,
+            ``data.augment``), or None for the paper's clean warps. Anchors and the validation and
+            test queries are never augmented.
     """
 
     def __init__(self, source: CanonicalSource, image_size: int = 100, num_anchors: int = 4,
@@ -95,7 +99,7 @@ class TripletDataModule(L.LightningDataModule):
                  train_triplets: int = 4000, val_queries: int = 300, test_queries: int = 1000,
                  batch_size: int = 32, eval_batch_size: int = 250, seed: int = 0,
                  cache_dir: str | Path = ".cache", objects: list[int] | None = None,
-                 queries: Any = "warped", views: Any = None) -> None:
+                 queries: Any = "warped", views: Any = None, augment: CameraAugment | None = None) -> None:
         super().__init__()
         if num_anchors < 1:
             raise ValueError(f"N (number of anchors) must be >= 1, got {num_anchors}")
@@ -110,6 +114,7 @@ class TripletDataModule(L.LightningDataModule):
         self.cache_dir = Path(cache_dir)
         self.objects = objects
         self.queries, self.views = queries, views
+        self.augment = augment
         self._ready = False
 
     # ------------------------------------------------------------------ setup
@@ -141,6 +146,9 @@ class TripletDataModule(L.LightningDataModule):
             flat_H = self.anchor_H_canon.reshape(-1, 3, 3)
             src = self.canon_images.repeat_interleave(N, dim=0)
             self.anchor_images = warp_image(src, flat_H).reshape(P, N, 3, *self.size)
+        # (P, N, 1, S, S) bool: each anchor's foreground, its non-zero pixels (backgrounds are exactly 0
+        # and print never is); bool keeps a large catalog's masks small
+        self.anchor_masks = (self.anchor_images.amax(dim=2, keepdim=True) > 0).contiguous()
         self.gallery = Gallery(
             images=self.anchor_images.reshape(P * N, 3, *self.size),
             object_index=self.plane_object.repeat_interleave(N),
@@ -153,10 +161,14 @@ class TripletDataModule(L.LightningDataModule):
         self.query_source: QuerySource = make_query_source(self.queries, self.views, self.homography)
         self.query_source.setup(self)
         sample, stream = self.query_source, functools.partial(stream_generator, self.seed)
-        self.train_set = ParamsDataset(sample.sample_triplets(self.train_triplets, "train", stream("train")))
+        triplets = sample.sample_triplets(self.train_triplets, "train", stream("train"))
+        if self.augment is not None:  # one seed per triplet: a batch is augmented alike whenever it is made
+            self.augment.setup(self.canon_images, self.masks[:, None].float())
+            triplets["aug_seed"] = torch.randint(2**62, (self.train_triplets,), generator=stream("augment"))
+        self.train_set = ParamsDataset(triplets)
         self.val_set = ParamsDataset(sample.sample_queries(self.val_queries, "val", stream("val")))
         self.test_set = ParamsDataset(sample.sample_queries(self.test_queries, "test", stream("test")))
-        self._device_anchors: dict[torch.device, torch.Tensor] = {}
+        self._device_anchors: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
         self._ready = True
 
     # -------------------------------------------------------------- loaders
@@ -183,22 +195,29 @@ class TripletDataModule(L.LightningDataModule):
                           generator=stream_generator(self.seed, "loader"))
 
     # ------------------------------------------------------------ materialise
-    def _anchors_on(self, device: torch.device) -> torch.Tensor:
+    def _anchors_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         if device not in self._device_anchors:
-            self._device_anchors[device] = self.anchor_images.to(device)
+            self._device_anchors[device] = (self.anchor_images.to(device), self.anchor_masks.to(device))
         return self._device_anchors[device]
 
     def materialize(self, batch: Batch) -> Batch:
         """Turn a batch of parameters into images (on the batch's device), by the query source.
 
-        Adds ``query`` ``(B, 3, S, S)`` to query batches; ``positive``, ``negative`` and
-        ``anchors`` ``(B, N, 3, S, S)`` to triplet batches.
+        Adds ``query`` ``(B, 3, S, S)`` to query batches; ``positive``, ``negative``, ``anchors``
+        ``(B, N, 3, S, S)`` and ``anchor_masks`` ``(B, N, 1, S, S)`` (float {0, 1}, each anchor's
+        foreground) to triplet batches. With ``augment``, positives and negatives are camera-like.
         """
         if "query" in batch or "positive" in batch:
             return batch
         out = self.query_source.materialize(batch)
         if "neg_plane" in batch:
-            out["anchors"] = self._anchors_on(batch["plane"].device)[batch["plane"]]
+            anchors, masks = self._anchors_on(batch["plane"].device)
+            out["anchors"], out["anchor_masks"] = anchors[batch["plane"]], masks[batch["plane"]].float()
+            if self.augment is not None and "aug_seed" in batch:
+                g = torch.Generator().manual_seed(int(batch["aug_seed"][0]))
+                pos_mask, neg_mask = self.query_source.foreground(out)
+                both = self.augment(torch.cat([out["positive"], out["negative"]]), torch.cat([pos_mask, neg_mask]), g)
+                out["positive"], out["negative"] = both.chunk(2)
         return out
 
     def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:

@@ -62,6 +62,11 @@ class QuerySource(Protocol):
         ``(B, 3, S, S)`` float in [0, 1], on the batch's device."""
         ...
 
+    def foreground(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(B, 1, S, S)`` float {0, 1} foreground masks of a materialised triplet batch's positives
+        and negatives (what :class:`matl.data.augment.CameraAugment` puts a background behind)."""
+        ...
+
 
 class WarpedQueries:
     """``data.queries=warped`` (paper Sec. 5.1): each query, positive and negative is its plane's
@@ -81,7 +86,9 @@ class WarpedQueries:
         self.plane_object = dm.plane_object
         self.num_objects = dm.canonical.num_objects
         self.canon_images = dm.canon_images
+        self.canon_masks = dm.masks[:, None].float()
         self._device_images: dict[torch.device, torch.Tensor] = {}
+        self._device_masks: dict[torch.device, torch.Tensor] = {}
 
     def sample_queries(self, n: int, stream: str, generator: torch.Generator) -> dict[str, torch.Tensor]:
         plane = torch.randint(len(self.plane_object), (n,), generator=generator)
@@ -118,6 +125,16 @@ class WarpedQueries:
         else:
             out["query"] = warp_image(canon[batch["plane"]], batch["query_H_canon"])
         return out
+
+    def foreground(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        device = batch["plane"].device
+        if device not in self._device_masks:
+            self._device_masks[device] = self.canon_masks.to(device)
+        masks = self._device_masks[device]
+        both = torch.cat([masks[batch["plane"]], masks[batch["neg_plane"]]])
+        H = torch.cat([batch["query_H_canon"], batch["neg_H_canon"]])
+        pos, neg = (warp_image(both, H) > 0.5).float().chunk(2)
+        return pos, neg
 
 
 @dataclass
@@ -223,6 +240,10 @@ class RenderedQueries:
         else:
             out["query"] = images[batch["view"]].float().div_(255.0)
         return out
+
+    def foreground(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        # rendered views have an exactly-0 background (docs/datasets.md)
+        return tuple((batch[k].amax(dim=1, keepdim=True) > 0).float() for k in ("positive", "negative"))
 
 
 def make_query_source(queries: Any, views: Any = None, homography: HomographySampler | None = None) -> QuerySource:
