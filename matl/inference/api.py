@@ -381,7 +381,8 @@ class Recognizer:
         features = torch.cat([p.features for p in self._planes]).to(self.device)
         model = self.model
         recognizer = GalleryRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
-                                       gallery_features=features, search=self.search)
+                                       gallery_features=features, search=self.search,
+                                       align=getattr(model, "align", None))
         if self.quantize == "int8":
             self.quantize_fallback = quantize_recognizer(recognizer, calibration_images(gallery.images))
         predictor = RefinedRecognizer(recognizer, self.refiner) if self.refiner is not None else recognizer

@@ -6,6 +6,11 @@ batches (``compiled_max_batch``, default 8: the one-query calls of ``query_ms``,
 go through :class:`CompiledQueryPath` instead: both networks as one TorchScript graph, traced,
 frozen and optimised for inference (weights pre-packed for oneDNN, convolution and ReLU fused),
 built at the first call and rebuilt whenever a weight changes.
+
+With an alignment stage (``model.align``, :mod:`matl.models.align`) the stage runs after the search, on
+the networks' outputs of whichever path ran (eager, compiled, int8, or an exported query network put
+in place of :meth:`Recognizer.embed_queries`), against the anchor the search returned; the stage
+itself is always eager float32 (it is not part of the compiled, int8 or exported graphs).
 """
 
 from __future__ import annotations
@@ -222,16 +227,22 @@ class Recognizer(nn.Module):
         compiled_max_batch: with ``fast``, CPU batches up to this size use :class:`CompiledQueryPath`
             (0: never). Larger batches, where per-op overhead is amortised, use the eager ``infer``
             methods, so evaluation in batches gives the same numbers as before up to float rounding.
+        align: an alignment stage (:class:`matl.models.align.AlignmentStage`) or None. After the search
+            (and ``anchor_choice``), ``align(queries, anchor, query_H_anchor, s(queries))`` against the
+            selected gallery anchor replaces ``query_H_anchor`` and hence ``query_H_canon``; recognition,
+            ``warped`` (``s(query)``, what ``c()`` saw), ``features`` and ``degenerate`` (the STN's) are
+            unchanged. Queries without an STN pose are left alone.
     """
 
     def __init__(self, feature_net: nn.Module, stn: nn.Module | None, gallery: Gallery,
                  anchor_choice: str = "feature", batch_size: int = 512,
                  gallery_features: torch.Tensor | None = None, search: SearchFactory | None = None,
-                 fast: bool = True, compiled_max_batch: int = 8) -> None:
+                 fast: bool = True, compiled_max_batch: int = 8, align: nn.Module | None = None) -> None:
         super().__init__()
         if anchor_choice not in ("feature", "appearance"):
             raise ValueError(f"anchor_choice must be 'feature' or 'appearance', got {anchor_choice!r}")
         self.feature_net, self.stn = feature_net, stn
+        self.align = align if stn is not None else None
         self.gallery = gallery
         self.anchor_choice = anchor_choice
         self.batch_size = batch_size
@@ -317,6 +328,9 @@ class Recognizer(nn.Module):
             candidates = first[:, None] + torch.arange(N, device=index.device)
             appearance = anchor_distances(g.images[candidates], warped)
             index = candidates.gather(1, appearance.argmin(1, keepdim=True))[:, 0]
+        if self.align is not None and query_H_anchor is not None:
+            aligned = self.align.infer(queries, g.images[index], query_H_anchor, warped)
+            query_H_anchor = aligned.query_H_anchor
         query_H_canon = None
         if query_H_anchor is not None:
             query_H_canon = compose_query_H_canon(query_H_anchor.double(), self._anchor_H_canon64()[index])

@@ -10,34 +10,73 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+#: the smallest mask mean divided by (a mask emptier than this gives a term near 0, not a division by 0)
+MIN_MASK_AREA = 1e-6
 
-def appearance_distance(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1) -> torch.Tensor:
+
+def appearance_distance(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1,
+                        mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean absolute difference over the last 3 dims: ``(..., 3, H, W) x (..., 3, H, W) -> (...)``.
 
     ``levels > 1`` averages the L1 over an image pyramid (2x2 average pooling per level; beyond
     the paper, which uses ``levels=1``): coarse levels see a misaligned object's overlap with the
     anchor, which widens the basin in which the STN gets a useful gradient.
+
+    ``mask`` (beyond the paper; ``model.appearance_mask=foreground``): ``(..., 1, H, W)`` weights in
+    [0, 1] (a foreground mask), broadcast over the channels. Both images are multiplied by it, and each
+    level's term is the mean of ``|anchors * mask - warped * mask|`` divided by the mean of the mask:
+    at full resolution the mean absolute difference over the masked pixels only. The masked images and
+    the mask are average-pooled together from level to level, so a pixel outside the mask changes no
+    level, and a coarse cell counts by the share of it the mask covers. A mask of ones gives exactly
+    the unmasked value; an empty mask gives 0.
     """
     if levels < 1:
         raise ValueError(f"appearance levels must be >= 1, got {levels}")
-    total = (anchors - warped).abs().mean(dim=(-3, -2, -1))
+    if mask is not None:
+        _check_mask(mask, anchors)
+        anchors, warped = anchors * mask, warped * mask
+    total = _level_distance(anchors, warped, mask)
     for _ in range(levels - 1):
         anchors, warped = _half(anchors), _half(warped)
-        total = total + (anchors - warped).abs().mean(dim=(-3, -2, -1))
+        mask = _half(mask) if mask is not None else None
+        total = total + _level_distance(anchors, warped, mask)
     return total / levels
 
 
-def anchor_distances(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1) -> torch.Tensor:
+def _level_distance(anchors: torch.Tensor, warped: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    distance = (anchors - warped).abs().mean(dim=(-3, -2, -1))
+    if mask is None:
+        return distance
+    return distance / mask.mean(dim=(-3, -2, -1)).clamp_min(MIN_MASK_AREA)
+
+
+def _check_mask(mask: torch.Tensor, images: torch.Tensor) -> None:
+    if (not isinstance(mask, torch.Tensor) or mask.ndim != images.ndim or mask.shape[-3] != 1
+            or mask.shape[-2:] != images.shape[-2:]):
+        shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
+        raise ValueError(f"appearance mask must be (..., 1, H, W) for images {tuple(images.shape)}, got {shape}")
+    try:
+        torch.broadcast_shapes(mask.shape, images.shape)
+    except RuntimeError:
+        raise ValueError(f"appearance mask {tuple(mask.shape)} does not match images {tuple(images.shape)}") from None
+
+
+def anchor_distances(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1,
+                     masks: torch.Tensor | None = None) -> torch.Tensor:
     """``L^a(I_i^a, s(I^p))`` of each anchor of a bag (paper Eq. 3's argument):
     ``(anchors (B, N, 3, H, W), warped (B, 3, H, W)) -> (B, N)``.
 
     The one computation behind the multiple-anchor loss, the selection layer and the recognizer's
-    ``anchor_choice=appearance``; ``levels`` as in :func:`appearance_distance`.
+    ``anchor_choice=appearance``; ``levels`` as in :func:`appearance_distance`. ``masks``: ``(B, N, 1, H, W)``
+    foreground of each anchor; each anchor's distance is then over its own foreground.
     """
     if anchors.ndim != 5 or warped.ndim != 4 or anchors.shape[0] != warped.shape[0]:
         raise ValueError(f"anchors must be (B, N, 3, H, W) and warped (B, 3, H, W), got "
                          f"{tuple(anchors.shape)} and {tuple(warped.shape)}")
-    return appearance_distance(anchors, warped[:, None].expand_as(anchors), levels)
+    if masks is not None and tuple(masks.shape) != (*anchors.shape[:2], 1, *anchors.shape[-2:]):
+        raise ValueError(f"anchor masks must be (B, N, 1, H, W) = {(*anchors.shape[:2], 1, *anchors.shape[-2:])} "
+                         f"for anchors {tuple(anchors.shape)}, got {tuple(masks.shape)}")
+    return appearance_distance(anchors, warped[:, None].expand_as(anchors), levels, masks)
 
 
 def _half(images: torch.Tensor) -> torch.Tensor:
@@ -58,8 +97,9 @@ class AppearanceLoss(nn.Module):
 class MultiAnchorAppearanceLoss(nn.Module):
     """Multiple-anchor appearance loss, Eq. 2: ``mean_b min_i L^a(I^a_{b,i}, s(I^p_b))``.
 
-    ``forward(anchors (B, N, 3, H, W), warped (B, 3, H, W)) -> (loss, selected (B,))``; the
-    selection is Eq. 3, so the loss equals Eq. 4 on the selected anchor. N = 1 is Eq. 1.
+    ``forward(anchors (B, N, 3, H, W), warped (B, 3, H, W), masks (B, N, 1, H, W) | None) -> (loss,
+    selected (B,))``; the selection is Eq. 3, so the loss equals Eq. 4 on the selected anchor. N = 1 is
+    Eq. 1. With ``masks`` each anchor's L1 is over its own foreground (:func:`appearance_distance`).
 
     Args:
         levels: pyramid levels of :func:`appearance_distance` (paper: 1).
@@ -69,7 +109,8 @@ class MultiAnchorAppearanceLoss(nn.Module):
         super().__init__()
         self.levels = levels
 
-    def forward(self, anchors: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        distances = anchor_distances(anchors, warped, self.levels)  # (B, N)
+    def forward(self, anchors: torch.Tensor, warped: torch.Tensor, masks: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        distances = anchor_distances(anchors, warped, self.levels, masks)  # (B, N)
         best, selected = distances.min(dim=1)
         return best.mean(), selected

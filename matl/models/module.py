@@ -3,6 +3,9 @@
 One module covers the paper's trained variants through its switches:
 ``num_anchors=1`` is the single-anchor method [28] (row a), ``stn=None`` is TL (row b),
 ``lam=0`` is row (g), ``stn_on_negative=False`` is row (i), ``metric_loss=NCELoss`` is row (j).
+Beyond the paper, and off in its rows: ``align`` (an anchor-conditioned alignment stage after ``s()``,
+:mod:`matl.models.align`) and ``appearance_mask="foreground"`` (the appearance loss over the anchor's
+foreground only).
 """
 
 from __future__ import annotations
@@ -17,10 +20,11 @@ from matl.data.gallery import Gallery
 from matl.geometry import warp_image
 from matl.inference.recognizer import Recognizer
 from matl.losses import MultiAnchorAppearanceLoss, appearance_distance
+from matl.models.align import AlignmentStage
 from matl.models.evaluation import PoseEvaluationModule
 from matl.models.feature import FeatureNet
 from matl.models.stn import SpatialTransformer
-from matl.utils.errors import NonFiniteLossError
+from matl.utils.errors import MatlError, NonFiniteLossError
 
 
 class MATLModule(PoseEvaluationModule):
@@ -46,6 +50,18 @@ class MATLModule(PoseEvaluationModule):
             warped into the positive's frame). With black backgrounds the forward term alone
             rewards shrinking a misaligned object (less non-overlap); the backward term pays for
             it, which removes that attractor. Selection (Eq. 3) always uses the forward term.
+        align: the alignment stage (:class:`~matl.models.align.AlignmentStage`), or None (paper, the
+            default): after Eq. 3 selects the anchor, the stage refines ``query_H_anchor`` against it and
+            the appearance loss of the final homography (``appearance`` and ``appearance_mask`` as for
+            ``s()``) is added to ``s()``'s own: ``loss = metric + lam * (L_app(s) + L_app(stage))``.
+            Recognition still uses ``c(s(query))``; the stage runs after the search
+            (:class:`~matl.inference.recognizer.Recognizer`).
+        appearance_mask: ``none`` (paper) or ``foreground`` (beyond the paper): every appearance term
+            is averaged over the anchor's foreground only, ``batch["anchor_masks"]`` ``(B, N, 1, S, S)``
+            (when a batch has none, ``anchors.amax(dim=2, keepdim=True) > 0``: the data's background is
+            exactly 0). The forward term and Eq. 3 use each anchor's own mask; the backward term uses the
+            selected anchor's mask warped into the positive's frame by the predicted homography (no
+            mask of the positive is used), so background behind a query costs nothing.
     """
 
     def __init__(self, feature_net: FeatureNet, stn: SpatialTransformer | None, metric_loss: nn.Module,
@@ -53,7 +69,8 @@ class MATLModule(PoseEvaluationModule):
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  scheduler: Callable[..., Any] | None = None, image_size: int = 100,
                  anchor_choice: str = "feature", appearance_levels: int = 1,
-                 appearance: str = "forward", score_weights: dict[str, float] | None = None) -> None:
+                 appearance: str = "forward", score_weights: dict[str, float] | None = None,
+                 align: AlignmentStage | None = None, appearance_mask: str = "none") -> None:
         super().__init__(image_size, num_anchors, optimizer, scheduler, score_weights)
         if lam < 0:
             raise ValueError(f"lam must be >= 0, got {lam}")
@@ -61,12 +78,19 @@ class MATLModule(PoseEvaluationModule):
             raise ValueError(f"model.appearance must be 'forward' or 'symmetric', got {appearance!r}")
         if num_negatives < 1:
             raise ValueError(f"M (loss.num_negatives) must be >= 1, got {num_negatives}")
+        if appearance_mask not in ("none", "foreground"):
+            raise MatlError(f"model.appearance_mask={appearance_mask!r} is invalid: use none (paper) or foreground")
+        if align is not None and stn is None:
+            raise MatlError("model.align needs an STN to refine (model=tl has none): drop model/align")
+        if align is not None and int(getattr(align, "image_size", image_size)) != int(image_size):
+            raise MatlError(f"model.align.image_size={align.image_size} differs from the model's {image_size}")
         self.feature_net, self.stn, self.metric_loss = feature_net, stn, metric_loss
         self.appearance_loss = MultiAnchorAppearanceLoss(appearance_levels)
         self.lam = float(lam)
         self.stn_on_negative, self.num_negatives = stn_on_negative, int(num_negatives)
         self.anchor_choice = anchor_choice
         self.appearance, self.appearance_levels = appearance, appearance_levels
+        self.align, self.appearance_mask = align, appearance_mask
         self.degenerate_count = 0  # training STN outputs replaced by identity, whole run (kept across resumes)
 
     # ---------------------------------------------------------------- training
@@ -98,6 +122,40 @@ class MATLModule(PoseEvaluationModule):
         idx = scores.topk(M, dim=1).indices                        # (B, M)
         return pool[idx], valid.gather(1, idx)
 
+    @staticmethod
+    def anchor_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(B, N, 1, S, S)`` float foreground of every anchor: ``batch["anchor_masks"]``, or where a batch
+        has none, the pixels of an anchor that are not exactly 0 in every channel."""
+        anchors = batch["anchors"]
+        masks = batch.get("anchor_masks")
+        if masks is None:
+            return (anchors.amax(dim=2, keepdim=True) > 0).to(anchors.dtype)
+        expected = (*anchors.shape[:2], 1, *anchors.shape[-2:])
+        if tuple(masks.shape) != expected:
+            raise ValueError(f"batch['anchor_masks'] must be {expected} for anchors {tuple(anchors.shape)}, "
+                             f"got {tuple(masks.shape)}")
+        return masks.to(anchors.dtype)
+
+    def backward_appearance(self, anchor: torch.Tensor, positive: torch.Tensor, query_H_anchor: torch.Tensor,
+                            mask: torch.Tensor | None) -> torch.Tensor:
+        """The backward term ``||I^p - s^-1(I^a_*)||_1`` (a scalar): the anchors ``(B, 3, S, S)`` warped into
+        the positives' frame by the pixel ``query_H_anchor`` ``(B, 3, 3)``, against the positives ``(B, 3, S, S)``;
+        with ``mask`` ``(B, 1, S, S)`` over the anchors' foreground warped the same way."""
+        anchor_in_query = warp_image(anchor, query_H_anchor)
+        mask_in_query = warp_image(mask, query_H_anchor) if mask is not None else None
+        return appearance_distance(anchor_in_query, positive, self.appearance_levels, mask_in_query).mean()
+
+    def pair_appearance(self, anchor: torch.Tensor, positive: torch.Tensor, warped: torch.Tensor,
+                        query_H_anchor: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """The appearance loss of one anchor per positive under a predicted homography (a scalar): the
+        forward term (Eq. 4) of ``anchor`` against ``warped`` (the positives warped into the anchors' frame
+        by ``query_H_anchor``), with ``appearance=symmetric`` averaged with :meth:`backward_appearance`;
+        over ``mask`` (the anchors' foreground) when given. Shapes as in :meth:`backward_appearance`."""
+        loss = appearance_distance(anchor, warped, self.appearance_levels, mask).mean()
+        if self.appearance == "symmetric":
+            loss = 0.5 * (loss + self.backward_appearance(anchor, positive, query_H_anchor, mask))
+        return loss
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         anchors, positive, negative = batch["anchors"], batch["positive"], batch["negative"]
         if anchors.shape[1] != self.num_anchors:
@@ -105,22 +163,29 @@ class MATLModule(PoseEvaluationModule):
                              f"for N={self.num_anchors}")
         degenerate_before = self.degenerate_count
         warped_pos, query_H_anchor = self.transform(positive)
-        loss_app, selected = self.appearance_loss(anchors, warped_pos)
-        anchor_star = anchors[torch.arange(len(anchors), device=anchors.device), selected]
+        masks = self.anchor_masks(batch) if self.appearance_mask == "foreground" else None
+        loss_app, selected = self.appearance_loss(anchors, warped_pos, masks)
+        rows = torch.arange(len(anchors), device=anchors.device)
+        anchor_star = anchors[rows, selected]
+        mask_star = masks[rows, selected] if masks is not None else None
         if self.appearance == "symmetric" and query_H_anchor is not None:
-            anchor_in_query = warp_image(anchor_star, query_H_anchor)
-            backward = appearance_distance(anchor_in_query, positive, self.appearance_levels).mean()
-            loss_app = 0.5 * (loss_app + backward)
+            loss_app = 0.5 * (loss_app + self.backward_appearance(anchor_star, positive, query_H_anchor, mask_star))
+        loss_align = None
+        if self.align is not None and query_H_anchor is not None:
+            aligned = self.align(positive, anchor_star, query_H_anchor, warped_pos)
+            loss_align = self.pair_appearance(anchor_star, positive, aligned.warped, aligned.query_H_anchor,
+                                              mask_star)
         warped_neg = self.transform(negative)[0] if self.stn_on_negative else negative
         emb = self.feature_net(torch.cat([anchor_star, warped_pos, warped_neg]))
         emb_a, emb_p, emb_n = emb.chunk(3)
         negatives, mask = self._negative_pool(emb_a, emb_p, emb_n, batch["object"], batch["neg_object"])
         loss_metric = self.metric_loss(emb_a, emb_p, negatives, mask)
-        loss = loss_metric + self.lam * loss_app if self.stn is not None else loss_metric
+        appearance = loss_app if loss_align is None else loss_app + loss_align
+        loss = loss_metric + self.lam * appearance if self.stn is not None else loss_metric
         if not torch.isfinite(loss):  # stop instead of training on (and checkpointing) NaN weights
             raise NonFiniteLossError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch}, step {self.global_step} "
-                f"(metric {loss_metric.item():.4g}, appearance {loss_app.item():.4g}): lower model.optimizer.lr "
+                f"(metric {loss_metric.item():.4g}, appearance {appearance.item():.4g}): lower model.optimizer.lr "
                 "or lam; checkpoints/last.ckpt holds the last good state")
         B = len(anchors)
         # STN outputs replaced by identity (matl.geometry.guard_homographies), summed over the epoch
@@ -129,13 +194,15 @@ class MATLModule(PoseEvaluationModule):
         self.log_dict({"train/loss": loss, "train/appearance": loss_app, "train/metric": loss_metric},
                       prog_bar=True, batch_size=B)
         self.log("train/selected_anchor_mean", selected.float().mean(), batch_size=B)
+        if loss_align is not None:
+            self.log("train/appearance_align", loss_align, batch_size=B)
         return loss
 
     # -------------------------------------------------------------- evaluation
     def build_recognizer(self, gallery: Gallery) -> Recognizer:
         was_training = self.training
         self.eval()
-        rec = Recognizer(self.feature_net, self.stn, gallery.to(self.device), self.anchor_choice)
+        rec = Recognizer(self.feature_net, self.stn, gallery.to(self.device), self.anchor_choice, align=self.align)
         self.train(was_training)
         return rec
 

@@ -1,0 +1,103 @@
+"""The appearance loss over the anchor's foreground (``model.appearance_mask=foreground``), by hand."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from matl.geometry import warp_image
+from matl.losses import MultiAnchorAppearanceLoss, anchor_distances, appearance_distance
+from matl.losses.metric import TripletLoss
+from matl.models.feature import FeatureNet
+from matl.models.module import MATLModule
+from matl.models.stn import HomographyRegressor, SpatialTransformer
+
+
+def test_masked_distance_hand_computed() -> None:
+    anchor = torch.zeros(1, 3, 2, 2)
+    warped = torch.zeros(1, 3, 2, 2)
+    warped[0, :, 0, 0] = 0.6   # inside the mask: |0 - 0.6| in every channel
+    warped[0, :, 1, 1] = 0.9   # outside the mask: free
+    mask = torch.tensor([[[[1.0, 1.0], [0.0, 0.0]]]])  # the top row: 2 of 4 pixels
+    # level 0: (0.6 + 0) / 2 pixels = 0.3
+    assert math.isclose(float(appearance_distance(anchor, warped, mask=mask)), 0.3, rel_tol=1e-6)
+    # level 1: masked images pooled: anchor 0, warped (0.6 + 0 + 0 + 0) / 4 = 0.15, mask 0.5 -> 0.3
+    assert math.isclose(float(appearance_distance(anchor, warped, levels=2, mask=mask)), 0.3, rel_tol=1e-6)
+    # unmasked, for contrast: (0.6 + 0.9) / 4 = 0.375 at level 0, |0 - 1.5 / 4| = 0.375 at level 1
+    assert math.isclose(float(appearance_distance(anchor, warped, levels=2)), 0.375, rel_tol=1e-6)
+    # a fractional mask weighs each pixel: mean |0.5 * 0.6| over 4 pixels, over the mask's mean 1.5 / 4
+    soft = torch.tensor([[[[0.5, 1.0], [0.0, 0.0]]]])
+    assert math.isclose(float(appearance_distance(anchor, warped, mask=soft)), (0.5 * 0.6 / 4) / (1.5 / 4),
+                        rel_tol=1e-6)
+    # an empty mask costs nothing (no division by zero)
+    assert float(appearance_distance(anchor, warped, mask=torch.zeros(1, 1, 2, 2))) == 0.0
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_a_mask_of_ones_is_exactly_the_unmasked_loss(levels: int) -> None:
+    g = torch.Generator().manual_seed(0)
+    anchors, warped = torch.rand(2, 4, 3, 9, 9, generator=g), torch.rand(2, 3, 9, 9, generator=g)
+    ones = torch.ones(2, 4, 1, 9, 9)
+    assert torch.equal(anchor_distances(anchors, warped, levels, ones), anchor_distances(anchors, warped, levels))
+    loss = MultiAnchorAppearanceLoss(levels)
+    (masked, sel_masked), (plain, sel_plain) = loss(anchors, warped, ones), loss(anchors, warped)
+    assert torch.equal(masked, plain) and torch.equal(sel_masked, sel_plain)
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_background_outside_the_mask_changes_nothing(levels: int) -> None:
+    g = torch.Generator().manual_seed(1)
+    anchor = torch.zeros(2, 3, 12, 12)
+    anchor[:, :, 3:9, 2:10] = torch.rand(2, 3, 6, 8, generator=g)
+    mask = (anchor.amax(dim=1, keepdim=True) > 0).float()
+    warped = anchor + 0.1 * torch.rand(2, 3, 12, 12, generator=g)
+    cluttered = torch.where(mask.bool(), warped, torch.rand(2, 3, 12, 12, generator=g))  # new background only
+    before = appearance_distance(anchor, warped, levels, mask)
+    assert torch.equal(appearance_distance(anchor, cluttered, levels, mask), before)
+    assert not torch.allclose(appearance_distance(anchor, cluttered, levels), appearance_distance(anchor, warped, levels))
+
+
+def test_selection_uses_each_anchors_own_foreground() -> None:
+    """Eq. 3 with masks: anchor 0 matches the query on its small foreground, anchor 1 is worse inside its
+    own; unmasked, anchor 1 wins because the query's texture lies on anchor 0's black background."""
+    warped = torch.full((1, 3, 4, 4), 0.5)
+    anchors = torch.zeros(1, 2, 3, 4, 4)
+    anchors[0, 0, :, :1, :1] = 0.5                 # one matching pixel, the rest background
+    anchors[0, 1] = 0.3                            # everywhere, 0.2 off
+    masks = (anchors.amax(dim=2, keepdim=True) > 0).float()
+    assert MultiAnchorAppearanceLoss()(anchors, warped)[1].tolist() == [1]
+    loss, selected = MultiAnchorAppearanceLoss()(anchors, warped, masks)
+    assert selected.tolist() == [0] and float(loss) == 0.0
+
+
+def test_mask_shapes_are_checked() -> None:
+    anchors, warped = torch.rand(2, 4, 3, 8, 8), torch.rand(2, 3, 8, 8)
+    with pytest.raises(ValueError, match=r"anchor masks must be \(B, N, 1, H, W\)"):
+        anchor_distances(anchors, warped, 1, torch.ones(2, 4, 3, 8, 8))
+    with pytest.raises(ValueError, match=r"appearance mask must be \(\.\.\., 1, H, W\)"):
+        appearance_distance(warped, warped, 1, torch.ones(2, 1, 4, 4))
+
+
+def test_backward_term_uses_the_anchors_mask_warped_into_the_positive() -> None:
+    """``appearance=symmetric`` + masks: the backward term compares the anchor warped into the positive's frame
+    with the positive over the anchor's foreground warped the same way: the positive's background is free."""
+    S = 16
+    torch.manual_seed(0)
+    stn = SpatialTransformer(HomographyRegressor(image_size=S), image_size=S)
+    model = MATLModule(FeatureNet(), stn, TripletLoss(), image_size=S, appearance="symmetric",
+                       appearance_levels=2, appearance_mask="foreground")
+    g = torch.Generator().manual_seed(2)
+    anchor = torch.zeros(1, 3, S, S)
+    anchor[:, :, 4:12, 5:11] = torch.rand(1, 3, 8, 6, generator=g)
+    mask = (anchor.amax(dim=1, keepdim=True) > 0).float()
+    H = torch.tensor([[[1.0, 0.0, 2.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]])  # anchor -> positive: a shift
+    positive = warp_image(anchor, H)
+    mask_in_positive = warp_image(mask, H)
+    expected = appearance_distance(warp_image(anchor, H), positive, 2, mask_in_positive).mean()
+    assert torch.equal(model.backward_appearance(anchor, positive, H, mask), expected)
+    assert float(expected) < 1e-6
+    clutter = torch.where(mask_in_positive > 0, positive, torch.rand(1, 3, S, S, generator=g))
+    assert torch.equal(model.backward_appearance(anchor, clutter, H, mask), expected)
+    assert float(model.backward_appearance(anchor, clutter, H, None)) > 0.05
