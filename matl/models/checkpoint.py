@@ -58,6 +58,31 @@ def checkpoint_info(ckpt: dict[str, Any], path: str | Path) -> tuple[int, int]:
     return int(ckpt["matl_image_size"]), int(ckpt["matl_num_anchors"])
 
 
+#: what a published (slim) checkpoint keeps: the weights and what rebuilds the model
+PUBLISHED_KEYS = ("state_dict", "matl_config", "matl_image_size", "matl_num_anchors", "matl_class_names",
+                  "matl_degenerate_count", "pytorch-lightning_version")
+
+
+def publish_checkpoint(src: str | Path, dst: str | Path, metrics: dict[str, Any] | None = None) -> Path:
+    """Write ``src``'s model as a slim checkpoint ``dst`` (no optimiser, loop or callback state):
+    what ``matl.predict ckpt=``, ``matl.eval`` and ``matl.Recognizer`` load, a fraction of the size.
+
+    ``metrics`` (e.g. the run's test metrics) are kept as ``matl_metrics``. Written atomically.
+    """
+    ckpt = load_checkpoint(src)
+    slim = {k: ckpt[k] for k in PUBLISHED_KEYS if k in ckpt}
+    slim["state_dict"] = {k: v.contiguous().clone() for k, v in ckpt["state_dict"].items()
+                          if not k.startswith("recognizer.")}
+    if metrics is not None:
+        slim["matl_metrics"] = {k: v for k, v in metrics.items() if isinstance(v, (int, float, str, type(None)))}
+    dst = Path(dst).expanduser()
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    torch.save(slim, tmp)
+    os.replace(tmp, dst)
+    return dst
+
+
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     """Hex sha256 of a file's bytes (keys the gallery-feature cache of ``matl.predict``)."""
     digest = hashlib.sha256()
