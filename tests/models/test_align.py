@@ -124,11 +124,11 @@ def test_shapes_and_config_values_are_checked_early() -> None:
                         ({"max_condition": 1.0}, "max_condition"), ({"channels": (8,) * 6}, "pooling layers")):
         with pytest.raises(MatlError, match=key):
             AlignmentStage(S, **kwargs)
-    with pytest.raises(MatlError, match="model.align needs an STN"):
+    with pytest.raises(MatlError, match=r"model\.align needs an STN"):
         MATLModule(FeatureNet(), None, TripletLoss(), image_size=S, align=AlignmentStage(S))
-    with pytest.raises(MatlError, match="model.align.image_size=32 differs"):
+    with pytest.raises(MatlError, match=r"model\.align\.image_size=32 differs"):
         MATLModule(FeatureNet(), random_stn(), TripletLoss(), image_size=48, align=AlignmentStage(S))
-    with pytest.raises(MatlError, match="model.appearance_mask='fg' is invalid"):
+    with pytest.raises(MatlError, match=r"model\.appearance_mask='fg' is invalid"):
         MATLModule(FeatureNet(), random_stn(), TripletLoss(), image_size=S, appearance_mask="fg")
 
 
