@@ -44,6 +44,7 @@ from torch import nn
 from matl.data.gallery import Gallery
 from matl.data.image_files import fit_to_model, load_image_file, pose_in_files
 from matl.geometry import HomographySampler, warp_image
+from matl.inference.fast_refine import FastRefiner
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.recognizer import Prediction, embed
@@ -149,14 +150,14 @@ def _search_factory(search: str | SearchFactory | None) -> SearchFactory:
     raise MatlError(f"search={search!r} is invalid: use 'exact', 'faiss' or a search factory")
 
 
-def _refiner(refine: bool | PhotometricRefiner | None) -> PhotometricRefiner | None:
+def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> PhotometricRefiner | FastRefiner | None:
     if refine is None or refine is False:
         return None
     if refine is True:
         return PhotometricRefiner()
-    if isinstance(refine, PhotometricRefiner):
+    if isinstance(refine, (PhotometricRefiner, FastRefiner)):
         return refine
-    raise MatlError(f"refine={refine!r} is invalid: use true, false or a PhotometricRefiner")
+    raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
 
 
 def _as_rgb(image: Any, what: str) -> np.ndarray:
@@ -211,7 +212,9 @@ class Recognizer:
             is refused.
         device: ``cpu`` or ``cuda``.
         refine: photometric refinement of every pose (True: the default refiner; or a
-            :class:`~matl.inference.refine.PhotometricRefiner`).
+            :class:`~matl.inference.refine.PhotometricRefiner`, or the inverse-compositional
+            :class:`~matl.inference.fast_refine.FastRefiner`, whose per-anchor data is computed
+            once each time the gallery changes).
         quantize: ``none`` or ``int8`` (int8 convolutions for the query networks, float fallback).
         search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
@@ -225,7 +228,8 @@ class Recognizer:
     """
 
     def __init__(self, model: nn.Module, image_size: int, num_anchors: int, model_id: str, *,
-                 device: str = "cpu", refine: bool | PhotometricRefiner | None = False, quantize: str = "none",
+                 device: str = "cpu", refine: bool | PhotometricRefiner | FastRefiner | None = False,
+                 quantize: str = "none",
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
                  open_set_statistic: str = "ratio", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  gallery_fill: float = 1.0,

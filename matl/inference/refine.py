@@ -306,17 +306,21 @@ class RefinedRecognizer:
 
     Args:
         recognizer: the wrapped callable; its ``gallery`` attribute is used unless ``gallery`` is given.
-        refiner: the refinement (``PhotometricRefiner``).
+        refiner: the refinement: :class:`~matl.inference.fast_refine.FastRefiner` (anything with a
+            ``prepare(anchor images)``: its per-anchor data is computed here, once for the gallery, and
+            queries pass anchor indices) or :class:`PhotometricRefiner` (queries pass anchor images).
     """
 
-    def __init__(self, recognizer: Callable[[torch.Tensor], Prediction], refiner: PhotometricRefiner,
+    def __init__(self, recognizer: Callable[[torch.Tensor], Prediction], refiner: Any,
                  gallery: Any = None) -> None:
         self.recognizer, self.refiner = recognizer, refiner
         self.gallery = gallery if gallery is not None else recognizer.gallery
+        self.templates = refiner.anchor_templates(self.gallery.images) if hasattr(refiner, "anchor_templates") \
+            else None  # per-anchor data of the inverse-compositional refiner, once per gallery
         self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
-        if name in ("recognizer", "refiner", "gallery", "last"):
+        if name in ("recognizer", "refiner", "gallery", "last", "templates"):
             raise AttributeError(name)
         return getattr(self.recognizer, name)
 
@@ -330,7 +334,10 @@ class RefinedRecognizer:
         found = index >= 0
         safe = index.clamp_min(0)
         start = pred.query_H_anchor.double().to(g.images.device)
-        result = self.refiner(queries.to(g.images.device), g.images[safe], start)
+        if self.templates is not None:
+            result = self.refiner(queries.to(g.images.device), safe, start, self.templates)
+        else:
+            result = self.refiner(queries.to(g.images.device), g.images[safe], start)
         self.last = result
         H = torch.where(found[:, None, None], result.query_H_anchor, start)
         pose = compose_query_H_canon(H, g.anchor_H_canon[safe].double())

@@ -1,0 +1,112 @@
+"""The inverse-compositional refiner (matl.inference.fast_refine, refiner=fast)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from matl.data.gallery import Gallery
+from matl.geometry import HomographySampler, corner_error_px, warp_image
+from matl.inference.fast_refine import FastRefiner
+from matl.inference.refine import RefinedRecognizer
+from matl.utils.errors import MatlError
+from tests.inference.test_refine import FixedRecognizer
+from tests.speed_helpers import textured_planes
+
+S, B = 64, 6
+
+
+def scene(seed: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Anchors, queries = exact warps of them by ``query_H_anchor`` (object kept inside), those
+    homographies, and starts ``~2-3 px`` (mean corner error) away from them."""
+    g = torch.Generator().manual_seed(seed)
+    anchors = textured_planes(B, S, seed)
+    true = HomographySampler(translation=(-0.08, 0.08), rotation_deg=(-20, 20), scale=(0.9, 1.1),
+                             tilt=(-0.2, 0.2)).sample(B, (S, S), g)
+    queries = warp_image(anchors, true.float())
+    perturbation = HomographySampler(translation=(-0.04, 0.04), rotation_deg=(-3, 3), scale=(0.97, 1.03),
+                                     tilt=(-0.03, 0.03), keep_inside=False).sample(B, (S, S), g)
+    return anchors, queries, true, true @ perturbation
+
+
+def test_round_trip_converges_to_the_true_pose() -> None:
+    anchors, queries, true, start = scene()
+    before = corner_error_px(start, true, (S, S))
+    assert float(before.mean()) > 1.5  # the premise: a few pixels off
+    result = FastRefiner().refine_images(queries, anchors, start)
+    after = corner_error_px(result.query_H_anchor, true, (S, S))
+    assert float(after.max()) < 0.6, after
+    assert bool(result.accepted.all()) and bool((result.loss_after < result.loss_before).all())
+
+
+def test_an_exact_start_stays_and_a_hopeless_query_keeps_its_start() -> None:
+    anchors = textured_planes(2, S, 3)
+    shift = torch.eye(3, dtype=torch.float64).repeat(2, 1, 1)
+    shift[:, 0, 2], shift[:, 1, 2] = 3.0, -2.0  # an integer shift: the warped query equals the anchor
+    queries = warp_image(anchors, shift.float())
+    result = FastRefiner().refine_images(queries, anchors, shift)
+    assert float(corner_error_px(result.query_H_anchor, shift, (S, S)).max()) < 1e-3
+    # the wrong object and a flat image: nothing explains them, the start comes back untouched
+    anchors, queries, _, start = scene()
+    hopeless = torch.cat([queries.roll(1, dims=0)[:3], torch.full_like(queries[:3], 0.5)])
+    result = FastRefiner().refine_images(hopeless, anchors, start)
+    kept = ~result.accepted
+    assert bool(kept[3:].all())
+    assert torch.equal(result.query_H_anchor[kept], start[kept].double())
+    assert bool((result.loss_after <= result.loss_before).all())
+    bad = torch.zeros(2, 3, 3, dtype=torch.float64)
+    bad[:, 2, 2] = 1.0  # a degenerate start (a broken STN) is returned unchanged
+    result = FastRefiner().refine_images(queries[:2], anchors[:2], bad)
+    assert not bool(result.accepted.any()) and torch.equal(result.query_H_anchor, bad)
+
+
+def test_background_and_lighting_do_not_move_the_pose() -> None:
+    anchors, queries, true, start = scene()
+    refiner = FastRefiner()
+    clean = refiner.refine_images(queries, anchors, start).query_H_anchor
+    clutter = textured_planes(B, S, 11).flip(-1) * 0.8 + 0.1   # full-frame texture behind each object
+    inside = warp_image(torch.ones_like(anchors[:, :1]), true.float()) > 0.999
+    cluttered = torch.where(inside, queries, clutter)
+    relit = cluttered * 0.6 + 0.15                              # gain and bias change of the whole query
+    moved = refiner.refine_images(relit, anchors, start).query_H_anchor
+    assert float(corner_error_px(moved, clean, (S, S)).max()) < 0.3
+    assert float(corner_error_px(moved, true, (S, S)).max()) < 0.6
+
+
+def test_precomputed_anchors_equal_per_query_templates_and_batches_equal_single_queries() -> None:
+    anchors, queries, _, start = scene()
+    gallery_images = torch.cat([textured_planes(3, S, 7), anchors])        # the anchors are entries 3..8
+    index = torch.arange(3, 3 + B)
+    refiner = FastRefiner().prepare(gallery_images)
+    batched = refiner(queries, index, start)
+    per_query = refiner.refine_images(queries, anchors, start)
+    assert torch.equal(batched.query_H_anchor, per_query.query_H_anchor)
+    assert torch.equal(batched.accepted, per_query.accepted)
+    for i in range(B):
+        one = refiner(queries[i:i + 1], index[i:i + 1], start[i:i + 1])
+        # equal up to float32 rounding of the batched products
+        assert float(corner_error_px(one.query_H_anchor, batched.query_H_anchor[i:i + 1], (S, S)).max()) < 1e-3
+        assert torch.equal(one.accepted, batched.accepted[i:i + 1])
+
+
+def test_refined_recognizer_precomputes_the_gallery_once() -> None:
+    anchors, queries, true, start = scene(seed=6)
+    n = len(anchors)
+    gallery = Gallery(anchors.flip(0), torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
+                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
+                      [f"p{i}" for i in range(n)])
+    index = torch.arange(n).flip(0)
+    index[0] = -1
+    refined = RefinedRecognizer(FixedRecognizer(gallery, index, start), FastRefiner())
+    assert refined.templates is not None and len(refined.templates) == n
+    out = refined(queries)
+    error = corner_error_px(out.query_H_canon, true, (S, S))
+    assert float(error[1:].max()) < 0.6
+    assert torch.equal(out.query_H_anchor[0], start[0])
+
+
+def test_fast_refiner_options_are_one_line_errors() -> None:
+    for kwargs in ({"loss": "l1"}, {"levels": 0}, {"iterations": -1}, {"delta": 0.0}, {"max_pixels": 3},
+                   {"erode": -1}, {"threads": 0}):
+        with pytest.raises(MatlError, match="refiner"):
+            FastRefiner(**kwargs)
