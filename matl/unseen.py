@@ -1,27 +1,33 @@
-"""``python -m matl.unseen ckpt=<path> [data=synthetic_apc] [queries=1000] [out=<dir>]``.
+"""``python -m matl.unseen ckpt=<path> [condition=clean|photometric|mask|clutter|view|sizes|all] [data=heldout]``.
 
-Recognition (and pose) of products the checkpoint never saw in training, measured through the
-user-facing path, ``matl.predict`` with a gallery enrolled from image files (paper Sec. 2.1):
+The benchmark of products the checkpoint never saw in training, measured through the user-facing
+path, ``matl.predict`` with a gallery enrolled from image files (paper Sec. 2.1):
 
-1. *Products*: the canonical images of ``data``'s source (default ``synthetic_apc``), rendered by the
-   project's own pipeline at ``file_size`` px (default: the checkpoint's model size). Every product
-   the checkpoint's training catalog also holds is dropped (:func:`seen_products`: same name, or same
-   brand and title, i.e. the same product printed again); products that only share a title with
-   another brand, or a brand and a kind, stay and are listed as ``related``.
-2. *Gallery*: ``<out>/gallery/<object>/<plane>.png`` (the ``images`` layout of docs/datasets.md). The files are the
-   catalog's full canonical frames, in which each plane spans 0.6 of the side as in training, so
-   predict runs with ``gallery_fill=1.0``; with ``gallery_crop=true`` they are tight crops of the
-   plane (its mask's bounding box) enrolled with ``gallery_fill=0.6``, which frames them the same way.
-3. *Queries*: ``queries`` files ``<out>/queries/q<i>.png``, each a canonical image warped by a random
-   homography of ``data.homography`` (the paper's ranges, scaled with the file size) with the fixed
-   ``query_seed``; the ground truth (object, plane, gallery file, ``query_H_canon`` in the files'
-   pixel coordinates) goes to ``<out>/truth.jsonl`` (:mod:`matl.score`'s sidecar format).
-4. ``python -m matl.predict ckpt=... gallery=... images=... out=<out>/predictions.jsonl`` (a separate
-   process: exactly the command a user runs), then :func:`matl.score.score_files`.
+1. *Products*: the canonical images of ``data``'s source (default ``heldout``: a procedural catalog
+   whose art comes from scikit-image's bundled photos, a pool no training catalog uses;
+   ``data=synthetic_apc`` is the earlier default), rendered at ``file_size`` px (default: the
+   checkpoint's model size). Every product the checkpoint's training catalog also holds is dropped
+   (:func:`~matl.evaluation.unseen.seen_products`: same name, or same brand and title); products that
+   only share a title with another brand, or a brand and a kind, stay and are listed as ``related``.
+2. *Gallery*: ``gallery/<object>/<plane>.png`` (the ``images`` layout of docs/datasets.md), full
+   canonical frames enrolled with ``gallery_fill=1.0`` (``gallery_crop=true``: tight crops, 0.6).
+3. *Queries*: ``queries`` files per condition, the same planes and poses (``data.homography``, fixed
+   ``query_seed``) in every condition that has poses (:mod:`matl.evaluation.conditions`): ``clean``
+   warps, ``photometric`` camera effects (JPEG files), ``mask`` RGBA files on real backgrounds with an
+   imperfect alpha, ``clutter`` real backgrounds and a neighbouring product cut by the edge, ``view``
+   pyrender views from 3D cameras (the plane-induced homography as truth), ``sizes`` other file sizes.
+   The truth (object, plane, gallery file, ``query_H_canon`` in file pixels) goes to ``truth.jsonl``.
+4. *Methods* (``methods``): ``python -m matl.predict`` once per method on the same files, a separate
+   process each: ``matl``, ``matl_refine`` (``refine=true``), ``sift`` and ``sift_ecc``
+   (``baseline=sift|sift_ecc``, read and framed by the same code); scored by
+   :func:`matl.score.score_files`; ``query_ms`` of every method timed here on the same queries
+   (``timing.*``: batch of 1, gallery in memory, warm-up, the same thread count).
 
-Writes ``<out>/unseen.json`` (the metrics of docs/design.md, ``plane_acc``, the products, what was excluded and
-why, per-object accuracy, the most frequent confusions and the commands used) and
-``<out>/per_query.csv``.
+Writes per condition ``unseen.json`` (the metrics of docs/design.md and ``plane_acc`` of the first
+MATL method at the top level, every method's under ``methods``, the products, what was excluded and
+why, per-object accuracy, confusions, the commands used) and ``per_query.csv``, into ``<out>/`` for
+one named condition or ``<out>/<condition>/`` for ``all`` or a list; then ``<out>/benchmark.json`` and
+``<out>/benchmark.md``, one row per condition and one column per method.
 """
 
 from __future__ import annotations

@@ -181,8 +181,10 @@ def score(truth: list[Truth], predictions: list[dict[str, Any] | None], image_si
     objects = sorted({t.object for t in truth} | named)
     index = {name: i for i, name in enumerate(objects)}
     sizes: dict[Path, tuple[int, int]] = {}
+    # a query answered with no product (unknown, or a keypoint baseline that matched nothing) may come without H
     pose_known = all(t.H is not None for t in truth) and all(
-        p.get("H") is not None and p.get("gallery_image") for p in predictions if p is not None)
+        p.get("H") is not None and p.get("gallery_image") for p in predictions
+        if p is not None and p.get("object") is not None)
     pred_obj, true_obj, est_H, true_H, rows = [], [], [], [], []
     plane_ok = 0
     for t, p in zip(truth, predictions, strict=True):
@@ -198,7 +200,7 @@ def score(truth: list[Truth], predictions: list[dict[str, Any] | None], image_si
         if pose_known:
             true_model = to_model_frame(t.H, t.gallery_image, t.image, image_size, gallery_fill, query_fill, sizes)
             est_model = torch.eye(3, dtype=torch.float64)  # no prediction: not recognised, the pose is not used
-            if p is not None:
+            if p is not None and p.get("H") is not None and p.get("gallery_image"):
                 gallery = _gallery_file(str(p["gallery_image"]), t, truth_base)
                 est_model = to_model_frame(_matrix(p["H"], f"prediction for {t.image}"), gallery, t.image,
                                            image_size, gallery_fill, query_fill, sizes)

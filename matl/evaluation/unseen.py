@@ -1,6 +1,10 @@
 """The unseen-products benchmark: gallery and query files of products a checkpoint never saw, predicted and scored.
 
-The library side of ``python -m matl.unseen`` (the command and its options: :mod:`matl.unseen`).
+The library side of ``python -m matl.unseen`` (the command and its options: :mod:`matl.unseen`). Every
+condition (:mod:`matl.evaluation.conditions`) is written from the same products and query poses into
+``<out>/<condition>/`` and predicted by every method through ``python -m matl.predict`` (MATL, MATL with
+refinement, and the keypoint baselines with ``baseline=``, on the same files framed the same way), scored
+by :func:`matl.evaluation.score.score_files` and timed in this process on the same queries.
 """
 
 from __future__ import annotations
@@ -12,20 +16,35 @@ import re
 import shlex
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from PIL import Image
 
-from matl.data.canonical import CanonicalSet, load_canonical
-from matl.data.datamodule import footprints_from_masks
+from matl.data.canonical import CanonicalSet, load_canonical, require_models
+from matl.evaluation.conditions import (
+    CONDITIONS,
+    Clutter,
+    ImperfectMask,
+    Photometric,
+    composite,
+    condition_rng,
+    heldout_backgrounds,
+    other_plane,
+    sample_poses,
+    scale_pixels,
+    to_uint8,
+    warp_planes,
+)
 from matl.evaluation.open_set import open_set_summary, plot_open_set
 from matl.evaluation.score import METRICS, score_files, write_rows
-from matl.geometry import HomographySampler, warp_image
+from matl.geometry import HomographySampler
 from matl.models.checkpoint import checkpoint_info, load_checkpoint
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
@@ -36,6 +55,7 @@ REPO = Path(__file__).resolve().parents[2]
 SYNTHETIC = "matl.data.catalog.SyntheticCatalog"
 CROP_FILL = 0.6  # the catalogs frame each plane's longer side at 0.6 of the image (data.source.fill)
 WARP_BATCH = 250
+METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
 
 
 # ------------------------------------------------------------------------------------ never seen
@@ -95,10 +115,6 @@ def _write_png(path: Path, image: np.ndarray) -> None:
     Image.fromarray(image).save(path)
 
 
-def _to_uint8(images: torch.Tensor) -> np.ndarray:
-    return (images.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
-
-
 def write_gallery(cs: CanonicalSet, root: Path, crop: bool = False) -> tuple[list[Path], torch.Tensor]:
     """``<root>/<object>/<plane>.png`` per plane; returns the files and ``canon_H_file`` ``(P, 3, 3)``
     (file pixel -> canonical-image pixel: identity, or the crop's offset)."""
@@ -118,35 +134,194 @@ def write_gallery(cs: CanonicalSet, root: Path, crop: bool = False) -> tuple[lis
     return paths, torch.stack(offsets)
 
 
+def _record(path: Path, out: Path, cs: CanonicalSet, p: int, gallery_files: list[Path], H_file: torch.Tensor,
+            **extra: Any) -> dict[str, Any]:
+    """One ground-truth line (:mod:`matl.score`'s sidecar): ``H`` = ``query_H_canon`` gallery file -> query file."""
+    H_file = H_file.double()
+    return {"image": str(path.relative_to(out)), "object": cs.object_names[int(cs.plane_object[p])],
+            "plane": cs.plane_names[p], "gallery_image": str(gallery_files[p].relative_to(out)),
+            "H": (H_file / H_file[2, 2]).tolist(), **extra}
+
+
+def _query_name(root: Path, i: int, n: int, suffix: str = ".png") -> Path:
+    return root / f"q{i:0{max(4, len(str(n - 1)))}d}{suffix}"
+
+
 def write_queries(cs: CanonicalSet, sampler: HomographySampler, n: int, seed: int, root: Path,
                   gallery_files: list[Path], canon_H_file: torch.Tensor, out: Path) -> list[dict[str, Any]]:
-    """``n`` warped query files ``<root>/q<i>.png`` and their ground-truth records.
+    """``n`` warped query files ``<root>/q<i>.png`` (the ``clean`` condition) and their ground-truth records.
 
     Each query draws a plane uniformly and a homography from ``sampler`` (object kept in the frame,
     as the training queries). ``H`` is ``query_H_canon`` in file pixels: gallery file -> query file.
     """
-    size = (cs.image_size, cs.image_size)
-    g = torch.Generator().manual_seed(int(seed))
-    plane = torch.randint(cs.num_planes, (n,), generator=g)
-    footprints = footprints_from_masks(torch.from_numpy(cs.masks))
-    query_H_canon = sampler.sample(n, size, g, footprints[plane])
-    canon = torch.from_numpy(cs.images).permute(0, 3, 1, 2)
+    plane, query_H_canon = sample_poses(cs, sampler, n, seed)
+    return write_clean(cs, plane, query_H_canon, root, gallery_files, canon_H_file, out)
+
+
+def write_clean(cs: CanonicalSet, plane: torch.Tensor, query_H_canon: torch.Tensor, root: Path,
+                gallery_files: list[Path], canon_H_file: torch.Tensor, out: Path) -> list[dict[str, Any]]:
+    """The planes ``(n,)`` warped by their poses ``(n, 3, 3)``, one PNG each; returns the truth records."""
+    n = len(plane)
     root.mkdir(parents=True, exist_ok=True)
-    width = max(4, len(str(n - 1)))
     truth = []
     for start in range(0, n, WARP_BATCH):
-        idx = plane[start:start + WARP_BATCH]
-        H = query_H_canon[start:start + WARP_BATCH]
-        images = _to_uint8(warp_image(canon[idx].double().div(255.0), H))
+        idx, H = plane[start:start + WARP_BATCH], query_H_canon[start:start + WARP_BATCH]
+        images, _ = warp_planes(cs, idx, H)
         for j, image in enumerate(images):
             i, p = start + j, int(idx[j])
-            path = root / f"q{i:0{width}d}.png"
-            _write_png(path, image)
-            H_file = H[j] @ canon_H_file[p]
-            truth.append({"image": str(path.relative_to(out)), "object": cs.object_names[int(cs.plane_object[p])],
-                          "plane": cs.plane_names[p], "gallery_image": str(gallery_files[p].relative_to(out)),
-                          "H": (H_file / H_file[2, 2]).tolist()})
+            path = _query_name(root, i, n)
+            _write_png(path, to_uint8(image))
+            truth.append(_record(path, out, cs, p, gallery_files, H[j] @ canon_H_file[p]))
     return truth
+
+
+@dataclass
+class Queries:
+    """What every condition starts from: the held-out products and the queries' planes and poses.
+
+    Attributes:
+        cs: the products' canonical set at ``file_size``.
+        plane: ``(n,)`` int64 plane of each query; query_H_canon: ``(n, 3, 3)`` float64 its pose.
+        seed: ``query_seed``.
+        source: the instantiated data source; source_objects: the source's object index of each of
+            ``cs``'s objects (to take the same products from the source's other renders).
+        cfg: the composed ``conf/unseen.yaml``.
+    """
+
+    cs: CanonicalSet
+    plane: torch.Tensor
+    query_H_canon: torch.Tensor
+    seed: int
+    source: Any
+    source_objects: list[int]
+    cfg: DictConfig
+
+    def at_size(self, size: int) -> CanonicalSet:
+        """The same products rendered at ``size`` px (cached like every canonical set)."""
+        if size == self.cs.image_size:
+            return self.cs
+        return load_canonical(self.source, size, self.cfg.paths.cache_dir).subset_objects(self.source_objects)
+
+
+def _node(cfg: DictConfig, key: str) -> dict[str, Any]:
+    return {k: tuple(v) if isinstance(v, (list, ListConfig)) else v
+            for k, v in OmegaConf.to_container(cfg[key], resolve=True).items()}
+
+
+def write_photometric(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+                      out: Path) -> list[dict[str, Any]]:
+    """The clean warps through :class:`~matl.evaluation.conditions.Photometric`, saved as JPEG files."""
+    camera = Photometric(**_node(q.cfg, "photometric"))
+    images, _ = warp_planes(q.cs, q.plane, q.query_H_canon)
+    root.mkdir(parents=True, exist_ok=True)
+    truth = []
+    for i, image in enumerate(images):
+        p = int(q.plane[i])
+        data, params = camera.apply(image, condition_rng(q.seed, "photometric", i))
+        path = _query_name(root, i, len(images), ".jpg")
+        path.write_bytes(data)
+        truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p],
+                             photometric=params))
+    return truth
+
+
+def write_mask(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+               out: Path) -> list[dict[str, Any]]:
+    """RGBA files: the warp composited on a real background, alpha an :class:`ImperfectMask` of the true one."""
+    segmenter = ImperfectMask(**_node(q.cfg, "mask"))
+    backgrounds = heldout_backgrounds(tuple(q.cfg.backgrounds.crop))
+    images, masks = warp_planes(q.cs, q.plane, q.query_H_canon)
+    truth = []
+    for i, (image, mask) in enumerate(zip(images, masks, strict=True)):
+        p, rng = int(q.plane[i]), condition_rng(q.seed, "mask", i)
+        rgb = composite(backgrounds.sample(q.cs.image_size, rng), image, mask)
+        alpha, params = segmenter.apply(mask > 0.5, rng)
+        path = _query_name(root, i, len(images))
+        _write_png(path, np.concatenate([to_uint8(rgb), alpha[..., None].astype(np.uint8) * 255], axis=-1))
+        truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p], mask=params))
+    return truth
+
+
+def write_clutter(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+                  out: Path) -> list[dict[str, Any]]:
+    """RGB files: a real background, a neighbouring product cut by the crop's edge, the product on top."""
+    clutter = Clutter(**_node(q.cfg, "clutter"))
+    backgrounds = heldout_backgrounds(tuple(q.cfg.backgrounds.crop))
+    sampler = hydra.utils.instantiate(q.cfg.data.homography)
+    images, masks = warp_planes(q.cs, q.plane, q.query_H_canon)
+    size = q.cs.image_size
+    truth = []
+    for i, (image, mask) in enumerate(zip(images, masks, strict=True)):
+        p, rng = int(q.plane[i]), condition_rng(q.seed, "clutter", i)
+        other = other_plane(q.cs, p, rng)
+        g = torch.Generator().manual_seed(int(rng.integers(2**62)))
+        own_H = sampler.sample(1, (size, size), g)[0]
+        neighbour, neighbour_mask = warp_planes(q.cs, torch.tensor([other]),
+                                                clutter.neighbour_H(own_H, size, rng)[None])
+        scene = composite(composite(backgrounds.sample(size, rng), neighbour[0], neighbour_mask[0]), image, mask)
+        path = _query_name(root, i, len(images))
+        _write_png(path, to_uint8(scene))
+        truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p],
+                             neighbour={"object": q.cs.object_names[int(q.cs.plane_object[other])],
+                                        "plane": q.cs.plane_names[other]}))
+    return truth
+
+
+def write_view(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+               out: Path) -> list[dict[str, Any]]:
+    """Views rendered from 3D camera poses (:class:`matl.data.view_sampler.ViewSampler`), the same planes
+    as the other conditions; ``H`` the plane-induced homography of each view."""
+    from matl.data.view_pool import load_view_pool
+    from matl.data.view_sampler import ViewSampler
+
+    source = require_models(q.source, "condition=view")
+    counts = torch.bincount(q.plane, minlength=q.cs.num_planes)
+    sampler = ViewSampler(**_node(q.cfg.view, "sampler"))
+    pool = load_view_pool(source, q.cs.image_size, max(1, int(counts.max())), sampler, int(q.cfg.view.seed),
+                          q.cfg.paths.cache_dir).subset_objects(q.source_objects)
+    pool.check_matches(q.cs)
+    used = np.zeros(q.cs.num_planes, dtype=np.int64)
+    truth = []
+    for i in range(len(q.plane)):
+        p = int(q.plane[i])
+        k, used[p] = int(used[p]), used[p] + 1
+        path = _query_name(root, i, len(q.plane))
+        _write_png(path, pool.images[p, k])
+        H = torch.from_numpy(pool.query_H_canon[p, k]).double()
+        truth.append(_record(path, out, q.cs, p, gallery_files, H @ canon_H_file[p], view=k))
+    return truth
+
+
+def write_sizes(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+                out: Path) -> list[dict[str, Any]]:
+    """The clean poses at ``sizes.query`` px, rendered at that size (the gallery is written at ``sizes.gallery``).
+
+    A pose at the file size ``f`` becomes ``M H M^-1`` at ``s`` px (``M`` the pixel scaling by ``s / f``); the
+    truth maps the ``g`` px gallery file to the query file: ``H_s @ scale(s / g) @ canon_H_file``.
+    """
+    f, s, g = q.cs.image_size, int(q.cfg.sizes.query), int(q.cfg.sizes.gallery)
+    cs_query = q.at_size(s)
+    M = scale_pixels(s / f)
+    H = M @ q.query_H_canon.double() @ torch.linalg.inv(M)
+    root.mkdir(parents=True, exist_ok=True)
+    truth = []
+    images, _ = warp_planes(cs_query, q.plane, H)
+    canon_H_gallery = scale_pixels(s / g)
+    for i, image in enumerate(images):
+        p = int(q.plane[i])
+        path = _query_name(root, i, len(images))
+        _write_png(path, to_uint8(image))
+        truth.append(_record(path, out, q.cs, p, gallery_files, H[i] @ canon_H_gallery @ canon_H_file[p]))
+    return truth
+
+
+def _write_clean_condition(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+                           out: Path) -> list[dict[str, Any]]:
+    return write_clean(q.cs, q.plane, q.query_H_canon, root, gallery_files, canon_H_file, out)
+
+
+WRITERS = {"clean": _write_clean_condition, "photometric": write_photometric, "mask": write_mask,
+           "clutter": write_clutter, "view": write_view, "sizes": write_sizes}
 
 
 def left_out_products(names: list[str], fraction: float, seed: int) -> list[str]:
@@ -170,91 +345,200 @@ def _arg(key: str, value: Any) -> str:
     return f"{key}='{text.replace(chr(92), chr(92) * 2).replace(chr(39), chr(92) + chr(39))}'"
 
 
-def run_predict(args: list[str], out: Path) -> None:
+def run_predict(args: list[str], out: Path, log_name: str = "predict.log") -> None:
     """``python -m matl.predict <args>`` in a separate process; its one-line error becomes ours."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
     proc = subprocess.run([sys.executable, "-m", "matl.predict", *args], cwd=out, env=env, capture_output=True,
                           text=True)
-    (out / "predict.log").write_text(proc.stdout + proc.stderr)
+    (out / log_name).write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
         errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
         reason = errors[-1].removeprefix("error: ") if errors else f"exit status {proc.returncode}"
-        raise MatlError(f"matl.predict failed ({reason}); its output is in {out / 'predict.log'}")
+        raise MatlError(f"matl.predict failed ({reason}); its output is in {out / log_name}")
 
 
-def _own_command() -> str:
+def _task_overrides() -> list[str]:
     try:
         from hydra.core.hydra_config import HydraConfig
 
-        overrides = list(HydraConfig.get().overrides.task)
+        return list(HydraConfig.get().overrides.task)
     except ValueError:  # called as a function, not from the command line
-        return ""
-    return shlex.join(["python", "-m", "matl.unseen", *overrides])
+        return []
+
+
+def _own_command() -> str:
+    overrides = _task_overrides()
+    return shlex.join(["python", "-m", "matl.unseen", *overrides]) if overrides else ""
+
+
+def method_overrides(method: str) -> list[str]:
+    """The user's own overrides of a method's settings, as predict's keys: ``refiner.*`` for matl_refine,
+    ``baselines.<name>.*`` (here) -> ``baseline.*`` (predict) for a keypoint baseline."""
+    overrides = _task_overrides()
+    if method == "matl_refine":
+        return [o for o in overrides if o.lstrip("+~").startswith("refiner.")]
+    prefix = f"baselines.{method}."
+    return [o.replace(prefix, "baseline.", 1) for o in overrides if o.lstrip("+~").startswith(prefix)]
+
+
+def predict_args(method: str, common: list[str]) -> list[str]:
+    """predict's overrides for one method on the files of ``common`` (ckpt, gallery, images, fills, ...)."""
+    if method in ("matl", "matl_refine"):
+        return [*common, _arg("refine", method == "matl_refine"), *method_overrides(method)]
+    return [*[a for a in common if not a.startswith("threshold=")], _arg("baseline", method), _arg("threshold", "null"),
+            *method_overrides(method)]
+
+
+# ------------------------------------------------------------------------------------------ timing
+def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, gallery_fill: float,
+                      query_fill: float) -> Any:
+    """The in-memory recognizer of one method, built as ``matl.predict`` builds it (batch of 1)."""
+    from matl.inference.files import recognizer_from_config
+
+    if method in ("matl", "matl_refine"):
+        node = OmegaConf.create({"ckpt": str(ckpt), "device": cfg.device, "refine": method == "matl_refine",
+                                 "threshold": threshold, "open_set_quantile": cfg.get("open_set_quantile", 0.94),
+                                 "gallery_fill": gallery_fill, "query_fill": query_fill, "batch_size": 1,
+                                 "quantize": "none"})
+        node.refiner = cfg.refiner
+        return recognizer_from_config(node)
+    from matl.baselines.files import KeypointFileRecognizer
+    from matl.baselines.recognizer import build_baseline
+
+    size, num_anchors = checkpoint_info(load_checkpoint(ckpt), ckpt)
+    return KeypointFileRecognizer(build_baseline(cfg.baselines[method], method), method, size, num_anchors,
+                                  gallery_fill=gallery_fill, query_fill=query_fill, batch_size=1)
+
+
+def time_methods(recognizers: dict[str, Any], files: list[Path], warmup: int, threads: int) -> dict[str, float]:
+    """``query_ms`` of each enrolled recognizer on the same query files: the median of single-query calls
+    (file already decoded; framing, recognition, pose and pose-in-files timed), after ``warmup`` untimed
+    calls, with ``threads`` torch and OpenCV threads for every method."""
+    from matl.data.image_files import load_image_file
+    from matl.utils.timing import median_query_ms
+
+    arrays = [load_image_file(f) for f in files]
+    shapes = {a.shape for a in arrays}
+    if len(shapes) != 1:
+        raise MatlError(f"timing needs query files of one size, got {sorted(shapes)}")
+    queries = torch.from_numpy(np.stack(arrays))  # (Q, H, W, 3)
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(int(threads))
+    try:
+        return {name: median_query_ms(lambda x, r=rec: r.predict_details([x[0].numpy()]), queries, warmup,
+                                      threads=int(threads)) for name, rec in recognizers.items()}
+    finally:
+        cv2.setNumThreads(previous)
 
 
 # ------------------------------------------------------------------------------------ entry point
-def _check(cfg: DictConfig) -> None:
+def _names(value: Any, valid: tuple[str, ...], key: str, allow_all: bool) -> list[str]:
+    """A single name, ``all`` or a list, checked against ``valid`` (one-line error naming them)."""
+    items = list(value) if isinstance(value, (list, tuple, ListConfig)) else [value]
+    if allow_all and items == ["all"]:
+        return list(valid)
+    options = ", ".join(valid) + (" or all" if allow_all else "")
+    bad = [v for v in items if not isinstance(v, str) or v not in valid]
+    if bad or not items or len(set(items)) != len(items):
+        shown = value if not isinstance(value, ListConfig) else OmegaConf.to_container(value)
+        raise MatlError(f"{key}={shown} is invalid: use {'one or a list' if allow_all else 'a list'} of {options}")
+    return [str(v) for v in items]
+
+
+def _ranges(cfg: DictConfig, keys: list[str]) -> None:
+    for key in keys:
+        value = OmegaConf.select(cfg, key)
+        ok = isinstance(value, (list, ListConfig)) and len(value) == 2 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value) and value[0] <= value[1]
+        if not ok:
+            raise MatlError(f"{key}={value} is invalid: use [low, high] with low <= high")
+
+
+def _check(cfg: DictConfig) -> tuple[list[str], list[str]]:
+    """Validate a composed ``conf/unseen.yaml``; returns the conditions and the methods."""
     validate_config(cfg)
     if cfg.get("ckpt") in (None, ""):
-        raise MatlError("ckpt=... is required: python -m matl.unseen ckpt=<checkpoint> [data=synthetic_apc] "
-                        "[out=<dir>]")
-    for key, low in (("queries", 1), ("query_seed", 0), ("file_size", 16)):
-        value = cfg.get(key)
+        raise MatlError("ckpt=... is required: python -m matl.unseen ckpt=<checkpoint> [condition=all] "
+                        "[data=heldout] [out=<dir>]")
+    conditions = _names(cfg.get("condition"), CONDITIONS, "condition", allow_all=True)
+    methods = _names(cfg.get("methods"), METHODS, "methods", allow_all=False)
+    for key, low in (("queries", 1), ("query_seed", 0), ("file_size", 16), ("sizes.gallery", 16), ("sizes.query", 16),
+                     ("timing.queries", 0), ("timing.warmup", 0), ("timing.threads", 1), ("view.seed", 0)):
+        value = OmegaConf.select(cfg, key)
         if value is None and key == "file_size":
             continue
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise MatlError(f"{key}={value} is invalid: use an integer >= {low}")
+    _ranges(cfg, [f"photometric.{k}" for k in cfg.photometric] + ["mask.offset_px", "mask.ragged_px",
+                                                                   "clutter.distance", "backgrounds.crop"])
     leave_out = cfg.get("leave_out", 0.0)
     if not isinstance(leave_out, (int, float)) or isinstance(leave_out, bool) or not 0.0 <= leave_out < 1.0:
         raise MatlError(f"leave_out={leave_out} is invalid: use a fraction in [0, 1) of the products kept out of "
                         "the gallery (open set)")
-    for key in ("exclude_seen", "gallery_crop", "refine"):
+    for key in ("exclude_seen", "gallery_crop"):
         if not isinstance(cfg.get(key), bool):
             raise MatlError(f"{key}={cfg.get(key)} is invalid: use true or false")
+    return conditions, methods
 
 
-def unseen(cfg: DictConfig) -> dict[str, Any]:
-    """Run the measurement for a composed ``conf/unseen.yaml``; returns what ``unseen.json`` holds."""
+def primary_method(methods: list[str]) -> str:
+    """The method whose metrics are ``unseen.json``'s top level: MATL's (plain first), else the first."""
+    return next((m for m in ("matl", "matl_refine") if m in methods), methods[0])
+
+
+def _products(cfg: DictConfig, train_data: dict[str, Any], file_size: int) -> tuple[Queries, dict[str, Any]]:
+    """The held-out products (seen ones dropped) and the queries' planes and poses; plus what was checked."""
     from matl.data.prepare import instantiate_source
-    from matl.utils.io import write_json
 
-    _check(cfg)
-    ckpt_path = Path(cfg.ckpt).expanduser().resolve()
-    ckpt = load_checkpoint(ckpt_path)
-    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
-    train_data = (ckpt.get("matl_config") or {}).get("data") or {}
-    del ckpt
-    out = Path(cfg.out).expanduser().resolve()
-    for sub in ("gallery", "queries"):
-        if (out / sub).exists() and any((out / sub).iterdir()):
-            raise MatlError(f"out={out} already holds {sub}/ from an earlier run: use a new out= folder")
-    out.mkdir(parents=True, exist_ok=True)
-
-    file_size = int(cfg.file_size or size)
     source = instantiate_source(cfg)
     sampler = hydra.utils.instantiate(cfg.data.homography)
     cs = load_canonical(source, file_size, cfg.paths.cache_dir)
     objects = OmegaConf.select(cfg, "data.objects")
+    source_objects = list(range(cs.num_objects)) if objects is None else [int(o) for o in objects]
     if objects is not None:
-        cs = cs.subset_objects(list(objects))
+        cs = cs.subset_objects(source_objects)
     seen, related, how = seen_products(train_data, source, cs.object_names)
     if not cfg.exclude_seen:
         seen = {}
     keep = [i for i, name in enumerate(cs.object_names) if name not in seen]
     if not keep:
         raise MatlError(f"every product of {source!r} is in the checkpoint's training catalog: pick another "
-                        "data= (e.g. synthetic_apc) or data.source.seed=")
+                        "data= (e.g. heldout) or data.source.seed=")
     cs = cs.subset_objects(keep)
     log.info("unseen: %d products (%d planes), %d excluded as seen: %s", cs.num_objects, cs.num_planes, len(seen),
              sorted(seen))
+    plane, query_H_canon = sample_poses(cs, sampler, int(cfg.queries), int(cfg.query_seed))
+    queries = Queries(cs, plane, query_H_canon, int(cfg.query_seed), source, [source_objects[i] for i in keep], cfg)
+    return queries, {"seen": seen, "related": related, "how": how}
 
+
+def _settings(cfg: DictConfig, condition: str) -> dict[str, Any] | None:
+    """The config values a condition was made with (for unseen.json)."""
+    keys = {"photometric": ["photometric"], "mask": ["mask", "backgrounds"], "clutter": ["clutter", "backgrounds"],
+            "view": ["view"], "sizes": ["sizes"]}.get(condition)
+    if keys is None:
+        return None
+    return {k: OmegaConf.to_container(cfg[k], resolve=True) for k in keys}
+
+
+def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str], ckpt_path: Path, size: int,
+                  num_anchors: int, checked: dict[str, Any], train_data: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Write one condition's gallery and queries into ``out``, predict and score them with every method;
+    returns what ``<out>/unseen.json`` holds."""
+    from matl.utils.io import write_json
+
+    for sub in ("gallery", "queries"):
+        if (out / sub).exists() and any((out / sub).iterdir()):
+            raise MatlError(f"out={out} already holds {sub}/ from an earlier run: use a new out= folder")
+    out.mkdir(parents=True, exist_ok=True)
     crop = bool(cfg.gallery_crop)
     gallery_fill = float(cfg.gallery_fill if cfg.gallery_fill is not None else (CROP_FILL if crop else 1.0))
     query_fill = float(cfg.query_fill)
-    gallery_files, canon_H_file = write_gallery(cs, out / "gallery", crop)
-    truth = write_queries(cs, sampler, int(cfg.queries), int(cfg.query_seed), out / "queries", gallery_files,
-                          canon_H_file, out)
+    gallery_cs = q.at_size(int(cfg.sizes.gallery)) if condition == "sizes" else q.cs
+    gallery_files, canon_H_file = write_gallery(gallery_cs, out / "gallery", crop)
+    truth = WRITERS[condition](q, out / "queries", gallery_files, canon_H_file, out)
+    cs = q.cs
     left_out = left_out_products(cs.object_names, float(cfg.leave_out), int(cfg.query_seed))
     for name in left_out:  # their gallery files move out of the gallery: predict never sees them
         (out / "gallery" / name).rename(_left_out_dir(out, name))
@@ -262,20 +546,49 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
         t["enrolled"] = t["object"] not in left_out
         if not t["enrolled"]:
             t["gallery_image"] = str(Path("left_out") / Path(t["gallery_image"]).relative_to("gallery"))
-    truth_path, pred_path = out / "truth.jsonl", out / "predictions.jsonl"
+    truth_path = out / "truth.jsonl"
     truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth if t["enrolled"]))
     if left_out:
         (out / "truth_left_out.jsonl").write_text("".join(json.dumps(t) + "\n" for t in truth if not t["enrolled"]))
 
     threshold = cfg.get("threshold", "auto") if left_out else None  # leave_out=0: the closed-set benchmark
-    predict_args = [_arg("ckpt", ckpt_path), _arg("gallery", out / "gallery"), _arg("images", out / "queries"),
-                    _arg("out", pred_path), _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill),
-                    _arg("batch_size", cfg.batch_size), _arg("device", cfg.device), _arg("refine", cfg.refine),
-                    _arg("threshold", "null" if threshold is None else threshold),
-                    _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94))]
-    run_predict([*predict_args, _arg("hydra.run.dir", out / "predict")], out)
+    common = [_arg("ckpt", ckpt_path), _arg("gallery", out / "gallery"), _arg("images", out / "queries"),
+              _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill), _arg("batch_size", cfg.batch_size),
+              _arg("device", cfg.device), _arg("threshold", "null" if threshold is None else threshold),
+              _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94))]
+    primary = primary_method(methods)
+    per_method: dict[str, dict[str, Any]] = {}
+    rows_of: dict[str, list[dict[str, Any]]] = {}
+    for method in methods:
+        pred_path = out / ("predictions.jsonl" if method == primary else f"predictions_{method}.jsonl")
+        args = [*predict_args(method, common), _arg("out", pred_path)]
+        log.info("unseen: %s: predicting %d queries with %s", condition, len(truth), method)
+        run_predict([*args, _arg("hydra.run.dir", out / f"predict_{method}")], out, f"predict_{method}.log")
+        summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)
+        score_args = [_arg("predictions", pred_path), _arg("truth", truth_path), _arg("ckpt", ckpt_path),
+                      _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill),
+                      _arg("out", out / f"score_{method}")]
+        per_method[method] = {**{k: summary[k] for k in METRICS}, "query_ms": None, "summary": summary,
+                              "predictions": pred_path.name,
+                              "per_query": "per_query.csv" if method == primary else f"per_query_{method}.csv",
+                              "commands": {"predict": shlex.join(["python", "-m", "matl.predict", *args]),
+                                           "score": shlex.join(["python", "-m", "matl.score", *score_args])}}
+        rows_of[method] = rows
+
+    timing = None
+    if int(cfg.timing.queries) > 0:
+        files = sorted((out / "queries").iterdir())[: int(cfg.timing.queries) + int(cfg.timing.warmup)]
+        warmup = min(int(cfg.timing.warmup), max(len(files) - 1, 0))
+        recognizers = {m: method_recognizer(m, cfg, ckpt_path, threshold, gallery_fill, query_fill).enrol(
+            out / "gallery") for m in methods}
+        for method, ms in time_methods(recognizers, files, warmup, int(cfg.timing.threads)).items():
+            per_method[method]["query_ms"] = ms
+        timing = {"queries": len(files) - warmup, "warmup": warmup, "threads": int(cfg.timing.threads),
+                  "statistic": "median over single-query calls (batch of 1), gallery in memory, file decoded"}
+
     open_set = None
-    if left_out:
+    if left_out and primary in ("matl", "matl_refine"):
+        pred_path = out / per_method[primary]["predictions"]
         predictions = {str(Path(r["image"]).relative_to(out)) if Path(r["image"]).is_absolute() else r["image"]: r
                        for r in map(json.loads, pred_path.read_text().splitlines())}
         open_set = open_set_summary(truth, predictions)
@@ -283,10 +596,9 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
         plot_open_set(open_set, out / "open_set.png")
         open_set = {k: v for k, v in open_set.items() if k != "curve"}
         log.info("unseen: open set %s", json.dumps(open_set))
-    summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)
-    score_args = [_arg("predictions", pred_path), _arg("truth", truth_path), _arg("ckpt", ckpt_path),
-                  _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill), _arg("out", out / "score")]
 
+    summary, rows = per_method[primary]["summary"], rows_of[primary]
+    related = checked["related"]
     unrelated = [r for r in rows if r["true_object"] not in related]
     result = {
         **{k: summary[k] for k in METRICS},
@@ -294,24 +606,106 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
         "num_queries_unrelated": len(unrelated),
         "num_queries": summary["num_queries"], "missing_predictions": summary["missing_predictions"],
         "num_objects": cs.num_objects, "num_planes": cs.num_planes,
+        "condition": condition, "condition_settings": _settings(cfg, condition), "method": primary,
+        "methods": {m: {k: v for k, v in r.items() if k != "summary"} for m, r in per_method.items()},
+        "timing": timing,
         "checkpoint": str(ckpt_path), "image_size": size, "N": num_anchors,
         "data": OmegaConf.to_container(cfg.data.source, resolve=True), "products": list(cs.object_names),
-        "excluded_seen": seen, "related": related, "seen_check": how,
+        "excluded_seen": checked["seen"], "related": related, "seen_check": checked["how"],
         "train_data": train_data.get("source"),
-        "query_seed": int(cfg.query_seed), "file_size": file_size, "gallery_crop": crop,
-        "gallery_fill": gallery_fill, "query_fill": query_fill, "refine": bool(cfg.refine),
+        "query_seed": int(cfg.query_seed), "file_size": cs.image_size, "gallery_crop": crop,
+        "gallery_fill": gallery_fill, "query_fill": query_fill, "refine": primary == "matl_refine",
         "homography": OmegaConf.to_container(cfg.data.homography, resolve=True),
         "pose_threshold_px": summary["pose_threshold_px"],
         "per_object": summary["per_object"], "confusions": summary["confusions"],
-        "commands": {"unseen": _own_command(),
-                     "predict": shlex.join(["python", "-m", "matl.predict", *predict_args]),
-                     "score": shlex.join(["python", "-m", "matl.score", *score_args])},
+        "commands": {"unseen": _own_command(), **per_method[primary]["commands"]},
         "files": {"gallery": "gallery", "queries": "queries", "truth": truth_path.name,
-                  "predictions": pred_path.name, "per_query": "per_query.csv"},
+                  "predictions": per_method[primary]["predictions"], "per_query": "per_query.csv"},
     }
     if open_set is not None:
         result["open_set"] = {**open_set, "left_out": left_out, "curve": "open_set.json", "figure": "open_set.png"}
     write_json(out / "unseen.json", result)
-    write_rows(out / "per_query.csv", rows)
-    log.info("unseen: %s", json.dumps({k: result[k] for k in (*METRICS, "num_queries", "num_objects")}))
+    for method, method_rows in rows_of.items():
+        write_rows(out / per_method[method]["per_query"], method_rows)
+    log.info("unseen: %s: %s", condition, json.dumps({m: {k: r[k] for k in TABLE_METRICS}
+                                                      for m, r in per_method.items()}))
     return result
+
+
+# ------------------------------------------------------------------------------------------ table
+TABLE_METRICS = ("rec_acc", "corner_err_px_median", "pose_acc_5px", "query_ms")
+
+
+def _cell(metrics: dict[str, Any]) -> str:
+    def fmt(value: Any, digits: int) -> str:
+        return "-" if value is None else f"{float(value):.{digits}f}"
+
+    return " / ".join([fmt(metrics.get("rec_acc"), 3), fmt(metrics.get("corner_err_px_median"), 1),
+                       fmt(metrics.get("pose_acc_5px"), 3), fmt(metrics.get("query_ms"), 1)])
+
+
+def benchmark_table(results: dict[str, dict[str, Any]], methods: list[str], command: str) -> tuple[dict, str]:
+    """``benchmark.json``'s content and ``benchmark.md``: one row per condition, one column per method,
+    each cell ``rec_acc / median corner_err_px / pose_acc_5px / query_ms``."""
+    table = {c: {m: {k: r["methods"][m].get(k) for k in TABLE_METRICS} for m in methods} for c, r in results.items()}
+    first = next(iter(results.values()))
+    data = {"command": command, "conditions": list(results), "methods": methods, "table": table,
+            "columns": list(TABLE_METRICS), "num_queries": {c: r["num_queries"] for c, r in results.items()},
+            "num_objects": first["num_objects"], "num_planes": first["num_planes"], "image_size": first["image_size"],
+            "checkpoint": first["checkpoint"], "data": first["data"], "query_seed": first["query_seed"],
+            "timing": first["timing"]}
+    lines = [f"Never-seen products: {first['num_objects']} products, {first['num_planes']} planes, "
+             f"checkpoint `{first['checkpoint']}`.", "",
+             f"`{command}`" if command else "(called as a function)", "",
+             "Each cell: rec_acc / median corner_err_px (at the model's "
+             f"{first['image_size']} px) / pose_acc_5px / query_ms (batch of 1).", "",
+             "| condition | queries | " + " | ".join(methods) + " |",
+             "|---|---|" + "---|" * len(methods)]
+    for condition, row in table.items():
+        lines.append(f"| {condition} | {results[condition]['num_queries']} | "
+                     + " | ".join(_cell(row[m]) for m in methods) + " |")
+    return data, "\n".join(lines) + "\n"
+
+
+def unseen(cfg: DictConfig) -> dict[str, Any]:
+    """Run the benchmark for a composed ``conf/unseen.yaml``.
+
+    Each condition writes ``<out>/<condition>/`` (gallery, queries, truth, predictions per method,
+    ``unseen.json``, ``per_query.csv``), or ``<out>/`` itself when ``condition`` names one condition;
+    ``<out>/benchmark.json`` and ``benchmark.md`` hold the table.
+
+    Returns:
+        The last condition's ``unseen.json`` content, with ``benchmark`` (``benchmark.json``'s content).
+    """
+    from matl.utils.io import write_json
+
+    conditions, methods = _check(cfg)
+    ckpt_path = Path(cfg.ckpt).expanduser().resolve()
+    ckpt = load_checkpoint(ckpt_path)
+    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
+    train_data = (ckpt.get("matl_config") or {}).get("data") or {}
+    del ckpt
+    out = Path(cfg.out).expanduser().resolve()
+    # one condition by name: its files straight into out/; all or a list: out/<condition>/ each
+    flat = isinstance(cfg.condition, str) and cfg.condition != "all"
+    folders = {c: out if flat else out / c for c in conditions}
+    for folder in folders.values():
+        for sub in ("gallery", "queries"):
+            if (folder / sub).exists() and any((folder / sub).iterdir()):
+                raise MatlError(f"out={out} already holds {folder.relative_to(out) / sub}/ from an earlier run: use a "
+                                "new out= folder")
+    if "view" in conditions:
+        from matl.data.prepare import instantiate_source
+
+        require_models(instantiate_source(cfg), "condition=view")
+    q, checked = _products(cfg, train_data, int(cfg.file_size or size))
+    results = {}
+    for condition in conditions:
+        results[condition] = run_condition(condition, q, cfg, methods, ckpt_path, size, num_anchors, checked,
+                                           train_data, folders[condition])
+    data, text = benchmark_table(results, methods, _own_command())
+    data["files"] = {c: str((folders[c] / "unseen.json").relative_to(out)) for c in conditions}
+    write_json(out / "benchmark.json", data)
+    (out / "benchmark.md").write_text(text)
+    log.info("unseen: benchmark -> %s\n%s", out / "benchmark.md", text)
+    return {**results[conditions[-1]], "benchmark": data}

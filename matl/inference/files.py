@@ -37,6 +37,10 @@ def _batches(items: Sequence[Path], size: int) -> Iterator[Sequence[Path]]:
         yield items[start:start + size]
 
 
+def _finite(value: float) -> float | None:
+    return None if value != value else value  # NaN -> null (JSON has no NaN)
+
+
 def record_of(path: Path, match: Match) -> dict[str, Any]:
     """The JSON line of one query file (``object`` / ``plane`` null when the product is not enrolled)."""
     return {
@@ -46,9 +50,9 @@ def record_of(path: Path, match: Match) -> dict[str, Any]:
         "known": match.known,
         "nearest_object": match.nearest_object,
         "anchor": match.anchor,
-        "distance": match.distance,
-        "score": None if match.score != match.score else match.score,  # NaN (no calibration) -> null
-        "statistic": match.statistic,
+        "distance": _finite(match.distance),  # a keypoint baseline has no feature distance: null
+        "score": _finite(match.score),  # NaN (no calibration) -> null
+        "statistic": _finite(match.statistic),
         "H": None if match.H is None else match.H.tolist(),
         "gallery_image": match.gallery_image,
     }
@@ -207,11 +211,29 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
     quantize_option(cfg)  # quantize=none|int8
     _threshold(cfg)
-    for key in ("ckpt", "gallery", "images", "out"):
+    for key in ("gallery", "images", "out"):
         if cfg.get(key) in (None, ""):
-            raise MatlError(f"{key}=... is required: python -m matl.predict ckpt=<path> gallery=<dir> "
-                            "images=<dir or file> out=<file.jsonl>")
-    recognizer = recognizer_from_config(cfg)
+            raise MatlError(f"{key}=... is required: python -m matl.predict gallery=<dir> images=<dir or file> "
+                            "out=<file.jsonl> [ckpt=<path>]")
+    if cfg.get("ckpt") in (None, ""):  # the model shipped in the package
+        from omegaconf import open_dict
+
+        from matl.inference.api import PRETRAINED
+
+        if not PRETRAINED.is_file():
+            raise MatlError(f"ckpt=... is required: no pretrained model ships with this install ({PRETRAINED} is "
+                            "missing); train one (python -m matl.train) and pass its checkpoints/best.ckpt")
+        with open_dict(cfg):
+            cfg.ckpt = str(PRETRAINED)
+    baseline = None
+    if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
+        from matl.baselines.files import baseline_recognizer_from_config
+        from matl.utils.runs import hydra_choice
+
+        baseline = hydra_choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]
+        recognizer: Any = baseline_recognizer_from_config(cfg, baseline)
+    else:
+        recognizer = recognizer_from_config(cfg)
     files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
     if not files:
         raise MatlError(f"images={cfg.images} holds no files")

@@ -90,6 +90,16 @@ def check_resume_checkpoint(path: str | Path, cfg: DictConfig, model: Any) -> No
                         f"missing {missing}, unexpected {extra}, other shapes {shapes}")
 
 
+def check_training_photos(cfg: DictConfig) -> None:
+    """Refuse a training source that prints the unseen benchmark's held-out photos (docs/datasets.md)."""
+    from matl.data.catalog.drawing import TRAINING_PHOTO_POOL
+
+    photos = OmegaConf.select(cfg, "data.source.photos", default=TRAINING_PHOTO_POOL)
+    if photos != TRAINING_PHOTO_POOL:
+        raise MatlError(f"data.source.photos={photos} is the held-out benchmark's photo pool (python -m matl.unseen): "
+                        f"training uses photos={TRAINING_PHOTO_POOL}")
+
+
 def log_lightning_once() -> None:
     """Print each Lightning log line once.
 
@@ -106,6 +116,7 @@ def log_lightning_once() -> None:
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit, test the best checkpoint, write ``metrics.json``; returns the test metrics."""
     validate_config(cfg)  # before any heavy import, data or model: a config mistake costs a second
+    check_training_photos(cfg)  # the benchmark's held-out photos are never trained on
     check_distributed_launch(cfg)  # local DDP inside -m would re-run the whole sweep in every process
     auto_ckpt, finished = auto_resume(cfg)  # resume=auto: continue this run folder (matl/utils/sweep.py)
     if finished is not None:
@@ -158,6 +169,16 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         if reasons:
             results["null_reasons"] = reasons
         if is_global_zero():  # under DDP every process gets here with the same (gathered) metrics
+            if cfg.get("publish") and ckpt:
+                from matl.models.checkpoint import publish_checkpoint
+
+                target = cfg.publish
+                if target == "shipped":  # the model inside the package: Recognizer.pretrained(), predict without ckpt=
+                    from matl.inference.api import PRETRAINED as target
+                published = publish_checkpoint(ckpt, target, results)
+                results["published"] = str(published)
+                log.info("published the tested checkpoint as %s (%.1f MB)", published,
+                         published.stat().st_size / 2**20)
             write_json(output_dir / "metrics.json", results)
             clear_failed(output_dir)  # a resumed job that had failed before
         log.info("test metrics: %s", json.dumps(results))

@@ -42,9 +42,11 @@ def test_left_out_products_are_a_seeded_fraction() -> None:
     assert left_out_products(names, 0.0, 3) == []
 
 
+@pytest.mark.slow
 def test_unseen_open_set_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> None:
     out = tmp_path / "open"
-    result = unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "queries=24", f"out={out}", "leave_out=0.5",
+    result = unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_apc", "methods=[matl]",
+                                              "timing.queries=0", "queries=24", f"out={out}", "leave_out=0.5",
                                               f"paths.cache_dir={cache_dir}"], tmp_path / "run"))
     left = result["open_set"]["left_out"]
     assert len(left) == 8 and not any((out / "gallery" / name).exists() for name in left)

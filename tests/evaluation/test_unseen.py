@@ -139,9 +139,11 @@ def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory, cache_dir: Path) -> Path
     return run_dir / "checkpoints" / "best.ckpt"
 
 
+@pytest.mark.slow
 def test_unseen_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> None:
     out = tmp_path / "unseen"
-    cfg = compose_config("unseen", [f"ckpt={tiny_ckpt}", "queries=10", f"out={out}",
+    cfg = compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_apc", "queries=10", f"out={out}",
+                                    "methods=[matl,sift]", "timing.queries=2", "timing.warmup=1",
                                     f"paths.cache_dir={cache_dir}"], tmp_path / "run")
     result = unseen(cfg)
     # synthetic_apc (seed 0) prints one product of the arc training catalog again: it is left out
@@ -161,6 +163,16 @@ def test_unseen_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> 
     assert "python -m matl.predict" in result["commands"]["predict"]
     saved = json.loads((out / "unseen.json").read_text())
     assert saved["rec_acc"] == result["rec_acc"] and (out / "per_query.csv").is_file()
+    # the keypoint baseline answered the same files through predict baseline=sift, and both were timed
+    sift = saved["methods"]["sift"]
+    assert sift["predictions"] == "predictions_sift.jsonl" and (out / "per_query_sift.csv").is_file()
+    assert len((out / sift["predictions"]).read_text().splitlines()) == 10 and "baseline=sift" in sift["commands"][
+        "predict"]
+    assert 0.0 <= sift["rec_acc"] <= 1.0 and sift["query_ms"] > 0 and saved["methods"]["matl"]["query_ms"] > 0
+    assert saved["methods"]["matl"]["rec_acc"] == result["rec_acc"] and result["condition"] == "clean"
+    table = (out / "benchmark.md").read_text()
+    assert "| condition | queries | matl | sift |" in table and "| clean | 10 |" in table
+    assert json.loads((out / "benchmark.json").read_text())["conditions"] == ["clean"]
 
     # the recorded score command gives the same numbers
     args = result["commands"]["score"].split()[3:]
@@ -171,11 +183,11 @@ def test_unseen_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> 
     assert again["rec_acc"] == result["rec_acc"] and again["corner_err_px"] == result["corner_err_px"]
 
     with pytest.raises(MatlError, match="already holds"):
-        unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "queries=2", f"out={out}",
+        unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_apc", "queries=2", f"out={out}",
                                          f"paths.cache_dir={cache_dir}"], tmp_path / "run"))
     # the training catalog itself has nothing unseen
     with pytest.raises(MatlError, match="training catalog"):
-        unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_arc", "queries=2",
+        unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_arc", "queries=2", "methods=[matl]",
                                          f"out={tmp_path / 'arc'}", f"paths.cache_dir={cache_dir}"], tmp_path / "r"))
 
 

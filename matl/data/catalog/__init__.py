@@ -9,7 +9,10 @@ see ``docs/datasets.md``.
 
 from __future__ import annotations
 
+import dataclasses
+import zlib
 from collections.abc import Iterator
+from importlib import metadata
 from typing import TYPE_CHECKING, Any
 
 import matplotlib
@@ -17,6 +20,7 @@ import numpy as np
 
 from matl.data.canonical import CanonicalSet, ProgressFn
 from matl.data.catalog.contact_sheet import contact_sheet
+from matl.data.catalog.drawing import PHOTO_POOLS, TRAINING_PHOTO_POOL
 from matl.data.catalog.models import product_model
 from matl.data.catalog.nonplanar import NONPLANAR_COMPOSITION, PLANES_PER_FORM, sample_nonplanar
 from matl.data.catalog.products import CATALOG_COMPOSITIONS, SHAPES, ProductSpec, sample_products
@@ -51,6 +55,13 @@ __all__ = [
 ]
 
 
+def _package_version(name: str) -> str:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "missing"
+
+
 class SyntheticCatalog:
     """Procedural catalog shaped like the paper's ARC, YCB or APC set (Sec. 5.1), or YCB's Table 2 split.
 
@@ -65,6 +76,11 @@ class SyntheticCatalog:
             Sec. 5.8 calls them), "nonplanar" (bottles, mugs, ...; only "ycb" and "ycb_table2"
             have any) or "all" (simple objects first, then non-planar). The default keeps the
             catalogs of ``docs/datasets.md`` (synthetic_ycb: 34 objects, 240 planes).
+        photos: the photo pool of the product art. ``"matplotlib"`` (default): the training
+            catalogs, whose art mixes procedural pictures with matplotlib's sample photos.
+            ``"skimage"``: the held-out benchmark variant, whose every product picture is a crop
+            of one of scikit-image's bundled photos (:data:`~matl.data.catalog.drawing.HELDOUT_PHOTO_FILES`),
+            dealt to the products in a seeded order; never trained on (``matl.train`` refuses it).
     """
 
     def __init__(
@@ -75,6 +91,7 @@ class SyntheticCatalog:
         supersample: int = 2,
         texture_px: int = 512,
         subset: str = "planar",
+        photos: str = TRAINING_PHOTO_POOL,
     ) -> None:
         if catalog not in CATALOGS:
             raise ValueError(f"unknown catalog {catalog!r}; valid: {sorted(CATALOGS)}")
@@ -82,6 +99,8 @@ class SyntheticCatalog:
             raise ValueError(f"data.source.subset={subset!r} is invalid; valid: {list(SUBSETS)}")
         if subset == "nonplanar" and catalog not in ("ycb", "ycb_table2"):
             raise ValueError(f"catalog {catalog!r} has no non-planar objects (only ycb and ycb_table2 have)")
+        if photos not in PHOTO_POOLS:
+            raise ValueError(f"data.source.photos={photos!r} is invalid; valid: {list(PHOTO_POOLS)}")
         if not 0.0 < fill <= 1.0:
             raise ValueError(f"fill must be in (0, 1], got {fill}")
         if int(supersample) < 1:
@@ -94,9 +113,12 @@ class SyntheticCatalog:
         self.supersample = int(supersample)
         self.texture_px = int(texture_px)
         self.subset = subset
+        self.photos = photos
 
     def __repr__(self) -> str:
         sub = "" if self.subset == "planar" else f", subset={self.subset!r}"
+        if self.photos != TRAINING_PHOTO_POOL:
+            sub += f", photos={self.photos!r}"
         return (
             f"SyntheticCatalog(catalog={self.catalog!r}, seed={self.seed}, fill={self.fill}, "
             f"supersample={self.supersample}, texture_px={self.texture_px}{sub})"
@@ -137,7 +159,16 @@ class SyntheticCatalog:
                 specs += [s for s in base if s.shape == shape][: simple.get(shape, 0)]
         if nonplanar:
             specs += sample_nonplanar(self.seed)
+        if self.photos != TRAINING_PHOTO_POOL:
+            specs = self._photo_art(specs)
         return specs
+
+    def _photo_art(self, specs: list[ProductSpec]) -> list[ProductSpec]:
+        """Every product's picture becomes a photo of :attr:`photos`' pool, dealt round-robin in a seeded
+        order (each photo printed by about as many products; each product crops it its own way)."""
+        names = sorted(PHOTO_POOLS[self.photos])
+        order = np.random.default_rng([self.seed, zlib.crc32(f"photos/{self.photos}".encode())]).permutation(len(specs))
+        return [dataclasses.replace(s, art=f"photo_{names[int(order[i]) % len(names)]}") for i, s in enumerate(specs)]
 
     def models(self) -> Iterator[ProductModel]:
         """The textured model of every object, in object order (for rendered views, which need the
@@ -163,6 +194,8 @@ class SyntheticCatalog:
             key["subset"] = self.subset
         if self._composition()[1]:
             key["nonplanar"] = NONPLANAR_VERSION
+        if self.photos != TRAINING_PHOTO_POOL:  # the held-out pool's files come from scikit-image
+            key["photos"] = f"{self.photos}-{_package_version('scikit-image')}"
         return key
 
     def build(self, image_size: int, progress: ProgressFn | None = None) -> CanonicalSet:

@@ -3,12 +3,14 @@
 Everything here draws with PIL on RGB/RGBA canvases and takes its randomness from an explicit
 ``numpy.random.Generator`` so a print is a pure function of its seed. The only external assets
 are fonts and sample photos that ship inside matplotlib (see ``docs/datasets.md`` for their
-licences); nothing is downloaded.
+licences); nothing is downloaded. The held-out benchmark's photos (:data:`HELDOUT_PHOTO_FILES`,
+:data:`HELDOUT_BACKGROUND_FILES`) ship inside scikit-image's wheel instead and are never trained on.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,6 +18,8 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
+
+from matl.utils.errors import MatlError
 
 RGB = tuple[int, int, int]
 Box = tuple[float, float, float, float]  # (left, top, right, bottom) in canvas pixels
@@ -47,6 +51,50 @@ PHOTO_FILES: dict[str, str] = {
     "present": "Minduka_Present_Blue_Pack.png",
 }
 
+# Benchmark (held-out) photos: images bundled in scikit-image's wheel (skimage/data, no download),
+# each dedicated to the public domain or CC0 by its source (docs/datasets.md lists them). The training
+# catalogs never print them: SyntheticCatalog(photos="skimage") does, and matl.train refuses that.
+# Colour photos for the products' art ...
+HELDOUT_PHOTO_FILES: dict[str, str] = {
+    "astronaut": "astronaut.png",
+    "chelsea": "chelsea.png",
+    "coffee": "coffee.png",
+    "rocket": "rocket.jpg",
+}
+# ... and other photos of the same package, only ever used as the real backgrounds of benchmark queries.
+HELDOUT_BACKGROUND_FILES: dict[str, str] = {
+    "brick": "brick.png",
+    "grass": "grass.png",
+    "gravel": "gravel.png",
+    "camera": "camera.png",
+    "hubble": "hubble_deep_field.jpg",
+}
+# data.source.photos of SyntheticCatalog: the pool its product art comes from.
+PHOTO_POOLS: dict[str, dict[str, str]] = {"matplotlib": PHOTO_FILES, "skimage": HELDOUT_PHOTO_FILES}
+TRAINING_PHOTO_POOL = "matplotlib"
+
+
+def heldout_photo_dir() -> Path:
+    """The folder of scikit-image's bundled sample images (``skimage/data``), found without importing skimage."""
+    spec = importlib.util.find_spec("skimage")
+    if spec is None or not spec.submodule_search_locations:
+        raise MatlError("the held-out benchmark photos come from scikit-image: pip install 'scikit-image>=0.22'")
+    return Path(next(iter(spec.submodule_search_locations))) / "data"
+
+
+def heldout_image(name: str) -> Image.Image:
+    """One of :data:`HELDOUT_PHOTO_FILES` or :data:`HELDOUT_BACKGROUND_FILES` as RGB (grey files repeated)."""
+    files = {**HELDOUT_PHOTO_FILES, **HELDOUT_BACKGROUND_FILES}
+    if name not in files:
+        raise MatlError(f"unknown held-out photo {name!r}; valid: {', '.join(sorted(files))}")
+    path = heldout_photo_dir() / files[name]
+    if not path.is_file():
+        raise MatlError(f"{path} is missing: this scikit-image wheel does not bundle it (pip install "
+                        "'scikit-image>=0.22')")
+    with Image.open(path) as im:
+        return im.convert("RGB")
+
+
 # Darkest value any printed channel may take. Canonical images use exactly 0 as background, so
 # print must never reach 0 even after antialiasing against the black background.
 INK_FLOOR = 28
@@ -60,9 +108,12 @@ def font(key: str, size: int) -> ImageFont.FreeTypeFont:
     return ImageFont.truetype(str(FONT_DIR / FONT_FILES[key]), max(int(size), 4))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=16)
 def photo(key: str) -> Image.Image:
-    """One of :data:`PHOTO_FILES` as RGBA (transparent where the file has alpha)."""
+    """One of :data:`PHOTO_FILES` (or, for the held-out catalogs, :data:`HELDOUT_PHOTO_FILES`) as RGBA
+    (transparent where the file has alpha)."""
+    if key not in PHOTO_FILES and key in HELDOUT_PHOTO_FILES:
+        return heldout_image(key).convert("RGBA")
     with Image.open(PHOTO_DIR / PHOTO_FILES[key]) as im:
         return im.convert("RGBA")
 
