@@ -168,7 +168,7 @@ class FastRefiner:
         self.tolerance = float(tolerance)
         self.threads = None if threads is None else int(threads)
         self.blur = float(blur)
-        self.templates: AnchorTemplates | None = None  # set by prepare()
+        self._templates: AnchorTemplates | None = None  # set by prepare()
 
     # ------------------------------------------------------------------------------ anchors
     def _pyramid(self, images: torch.Tensor) -> list[torch.Tensor]:
@@ -247,7 +247,7 @@ class FastRefiner:
 
     def prepare(self, anchors: torch.Tensor) -> FastRefiner:
         """Precompute the templates of a gallery's anchors ``(G, 3, H, W)``; returns self."""
-        self.templates = self.anchor_templates(anchors)
+        self._templates = self.anchor_templates(anchors)
         return self
 
     # ------------------------------------------------------------------------------ objective
@@ -352,7 +352,7 @@ class FastRefiner:
         Returns:
             :class:`~matl.inference.refine.RefineResult` with float64 pixel homographies.
         """
-        templates = templates if templates is not None else self.templates
+        templates = templates if templates is not None else self._templates
         if templates is None:
             raise RuntimeError("FastRefiner: call prepare(gallery images) or pass templates")
         if queries.ndim != 4 or query_H_anchor.shape != (len(queries), 3, 3) or anchor_index.shape != (len(queries),):
