@@ -156,18 +156,23 @@ class AlignmentStage(nn.Module):
             trains the stage alone and ``s()`` keeps exactly its own training signal (Eq. 4 on its
             warp, which is also what ``c()`` sees for recognition). False lets the stage's loss reach
             ``s()`` as well.
+        lr_scale: training only: the stage's parameters are optimised at this multiple of
+            ``model.optimizer.lr`` (:meth:`matl.models.module.MATLModule.optimizer_param_groups`).
     """
 
     def __init__(self, image_size: int = 100, iterations: int = 3, downsample: int = 2,
                  channels: tuple[int, ...] = (16, 32, 64), hidden: int = 128, max_offset: float = 0.5,
-                 max_condition: float = 1e4, detach_input: bool = True) -> None:
+                 max_condition: float = 1e4, detach_input: bool = True, lr_scale: float = 1.0) -> None:
         super().__init__()
         if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
             raise MatlError(f"model.align.iterations={iterations} is invalid: use an integer >= 1")
         if not float(max_condition) > 1.0:
             raise MatlError(f"model.align.max_condition={max_condition} is invalid: use a number > 1")
         self.image_size, self.iterations = int(image_size), int(iterations)
+        if not float(lr_scale) > 0.0:
+            raise MatlError(f"model.align.lr_scale={lr_scale} is invalid: use a number > 0")
         self.max_condition, self.detach_input = float(max_condition), bool(detach_input)
+        self.lr_scale = float(lr_scale)
         self.regressor = ResidualRegressor(image_size, downsample, tuple(channels), hidden, max_offset)
 
     def _check(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor,

@@ -111,10 +111,17 @@ class PoseEvaluationModule(L.LightningModule):
         self.test_results = self._log_metrics(self.test_metrics, "test/")
 
     # -------------------------------------------------------------- plumbing
+    def optimizer_param_groups(self) -> Any:
+        """What the optimiser is built over: the parameters, or param groups (a group's ``lr_scale``
+        multiplies the configured learning rate for it, before the scheduler starts)."""
+        return self.parameters()
+
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
             raise ValueError("model.optimizer is not set")
-        optimizer = self.optimizer_factory(params=self.parameters())
+        optimizer = self.optimizer_factory(params=self.optimizer_param_groups())
+        for group in optimizer.param_groups:  # a group may run at a multiple of the configured rate
+            group["lr"] = group["lr"] * float(group.get("lr_scale", 1.0))
         if self.scheduler_factory is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.scheduler_factory(optimizer=optimizer),

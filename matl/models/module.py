@@ -198,6 +198,17 @@ class MATLModule(PoseEvaluationModule):
             self.log("train/appearance_align", loss_align, batch_size=B)
         return loss
 
+    def optimizer_param_groups(self) -> Any:
+        """All parameters in one group; with an alignment stage its parameters form a second group at
+        ``align.lr_scale`` times the learning rate (a fresh network refining a pose that ``s()`` already
+        brought close gets small gradients)."""
+        if self.align is None:
+            return self.parameters()
+        stage = {id(p) for p in self.align.parameters()}
+        rest = [p for p in self.parameters() if id(p) not in stage]
+        return [{"params": rest}, {"params": list(self.align.parameters()),
+                                   "lr_scale": float(getattr(self.align, "lr_scale", 1.0))}]
+
     # -------------------------------------------------------------- evaluation
     def build_recognizer(self, gallery: Gallery) -> Recognizer:
         was_training = self.training

@@ -322,3 +322,19 @@ def test_tiny_run_with_the_stage_trains_evaluates_and_predicts(tiny_train_cfg) -
     rec.add("box", "front", image)
     match = rec.predict(image)
     assert match.object == "box" and match.H is not None and np.isfinite(match.H).all()
+
+
+def test_the_stage_trains_at_its_own_multiple_of_the_learning_rate() -> None:
+    import functools
+
+    optimizer = functools.partial(torch.optim.SGD, lr=0.01, momentum=0.9)
+    plain = module(None, optimizer=optimizer)
+    groups = plain.configure_optimizers().param_groups
+    assert len(groups) == 1 and groups[0]["lr"] == 0.01
+    model = module(AlignmentStage(S, lr_scale=10.0), optimizer=optimizer)
+    rest, stage = model.configure_optimizers().param_groups
+    assert rest["lr"] == 0.01 and math.isclose(stage["lr"], 0.1)
+    assert {id(p) for p in stage["params"]} == {id(p) for p in model.align.parameters()}
+    assert len(rest["params"]) + len(stage["params"]) == len(list(model.parameters()))
+    with pytest.raises(MatlError, match="lr_scale"):
+        AlignmentStage(S, lr_scale=0.0)
