@@ -41,8 +41,26 @@ def paper_settings(cfg: DictConfig, dataset: str) -> dict[str, Any]:
 
 
 def classify_training(cfg: DictConfig, dataset: str) -> tuple[str | None, str | None, bool]:
-    """``(Table 1 row, Table 2 row, in Fig. 4's family)`` of a training config (:func:`matl.paper.classify`)."""
+    """``(Table 1 row, Table 2 row, in Fig. 4's family)`` of a training config (:func:`matl.paper.classify`).
+
+    A run trained beyond the paper's recipe (camera-like positives ``data.augment``, the alignment stage
+    ``model.align``, the foreground appearance loss) is no paper row: ``(None, None, False)``.
+    """
+    if beyond_paper(cfg):
+        return None, None, False
     return paper.classify(paper_settings(cfg, dataset))
+
+
+def beyond_paper(cfg: DictConfig) -> list[str]:
+    """The settings of a training config that go beyond the paper's recipe (empty for a paper row)."""
+    found = []
+    if select(cfg, "data.augment") is not None:
+        found.append("augment=camera")
+    if select(cfg, "model.align") is not None:
+        found.append("align")
+    if select(cfg, "model.appearance_mask", "none") not in (None, "none"):
+        found.append(f"appearance_mask={select(cfg, 'model.appearance_mask')}")
+    return found
 
 
 def baseline_row(baseline: str, N: Any) -> str | None:
@@ -64,6 +82,7 @@ def describe(cfg: DictConfig | None, kind: str, metrics: dict[str, Any]) -> str:
         value = select(cfg, key)
         if value is not None:
             parts.append(f"{name}={short(value)}")
+    parts += beyond_paper(cfg) if cfg is not None else []
     if kind == "eval":
         parts.append(f"eval of {metrics.get('run') or '?'}")
     return ", ".join(parts)

@@ -13,23 +13,24 @@ from tests.reporting.fake_runs import fake_run, metrics_for
 
 
 def test_rows_are_read_from_the_config_not_the_experiment_name(tmp_path: Path) -> None:
-    """experiment=table1_f N=2 is a Fig. 4 point; a plain run with the same settings as row (g) is row (g)."""
+    """experiment=table1_f N=2 is a Fig. 4 point; a run with the paper's recipe (augment=none) and row (g)'s
+    settings is row (g)."""
     a = load_run(fake_run(tmp_path / "a", ["experiment=table1_f", "N=2"], metrics_for(0.5, 1.0, 0)))
     assert a.table1 is None and a.fig4 is not None and a.fig4[1] == 2
-    g = load_run(fake_run(tmp_path / "g", ["lam=0"], metrics_for(0.5, 1.0, 0)))
+    g = load_run(fake_run(tmp_path / "g", ["augment=none", "lam=0"], metrics_for(0.5, 1.0, 0)))
     assert g.table1 == "g" and g.paper_column == "ARC"
-    j = load_run(fake_run(tmp_path / "j", ["loss=nce", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
+    j = load_run(fake_run(tmp_path / "j", ["augment=none", "loss=nce", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
     assert j.table1 == "j"
-    other = load_run(fake_run(tmp_path / "o", ["loss=nce", "N=6", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
+    other = load_run(fake_run(tmp_path / "o", ["augment=none", "loss=nce", "N=6", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
     assert other.table1 is None and other.fig4 is None
-    ycb_all = load_run(fake_run(tmp_path / "y", ["data=synthetic_ycb", "data.source.subset=all"],
+    ycb_all = load_run(fake_run(tmp_path / "y", ["augment=none", "data=synthetic_ycb", "data.source.subset=all"],
                                 metrics_for(0.5, 1.0, 0)))
     assert ycb_all.dataset == "synthetic_ycb/all" and ycb_all.paper_column is None  # not the paper's YCB
     t2 = load_run(fake_run(tmp_path / "t2", ["experiment=table2_b"], metrics_for(0.5, 1.0, 0)))
     assert (t2.table1, t2.table2, t2.fig4, t2.dataset) == (None, "b", None, "synthetic_ycb_table2/planar")
     # two seeds of one config share a fingerprint; another lam does not
-    s1 = load_run(fake_run(tmp_path / "s1", ["seed=1"], metrics_for(0.5, 1.0, 1)))
-    s0 = load_run(fake_run(tmp_path / "s0", ["seed=0"], metrics_for(0.5, 1.0, 0)))
+    s1 = load_run(fake_run(tmp_path / "s1", ["augment=none", "seed=1"], metrics_for(0.5, 1.0, 1)))
+    s0 = load_run(fake_run(tmp_path / "s0", ["augment=none", "seed=0"], metrics_for(0.5, 1.0, 0)))
     assert s0.fingerprint == s1.fingerprint != g.fingerprint
 
 
@@ -60,3 +61,16 @@ def test_groups_keep_the_newest_run_of_a_seed_and_list_failures(tmp_path: Path) 
 def test_a_missing_folder_is_a_user_error(tmp_path: Path) -> None:
     with pytest.raises(MatlError, match="does not exist"):
         find_runs([tmp_path / "missing"])
+
+
+def test_runs_beyond_the_papers_recipe_are_no_paper_row(tmp_path) -> None:
+    """The default matl.train (camera-like positives) is not row (f); augment=none is."""
+    from matl.reporting.configs import dataset_name
+    from matl.reporting.rows import classify_training, describe
+    from tests.conftest import compose_config
+
+    default = compose_config("train", [], tmp_path)
+    assert classify_training(default, dataset_name(default.data)) == (None, None, False)
+    assert "augment=camera" in describe(default, "train", {})
+    paper_f = compose_config("train", ["augment=none"], tmp_path)
+    assert classify_training(paper_f, dataset_name(paper_f.data))[0] == "f"
