@@ -21,7 +21,8 @@ def test_rows_are_read_from_the_config_not_the_experiment_name(tmp_path: Path) -
     assert g.table1 == "g" and g.paper_column == "ARC"
     j = load_run(fake_run(tmp_path / "j", ["augment=none", "loss=nce", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
     assert j.table1 == "j"
-    other = load_run(fake_run(tmp_path / "o", ["augment=none", "loss=nce", "N=6", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
+    other = load_run(fake_run(tmp_path / "o", ["augment=none", "loss=nce", "N=6", "data.batch_size=40"],
+                              metrics_for(0.5, 1.0, 0)))
     assert other.table1 is None and other.fig4 is None
     ycb_all = load_run(fake_run(tmp_path / "y", ["augment=none", "data=synthetic_ycb", "data.source.subset=all"],
                                 metrics_for(0.5, 1.0, 0)))
