@@ -65,13 +65,13 @@ def test_a_missing_folder_is_a_user_error(tmp_path: Path) -> None:
 
 
 def test_runs_beyond_the_papers_recipe_are_no_paper_row(tmp_path) -> None:
-    """The default matl.train (camera-like positives) is not row (f); augment=none is."""
+    """A run with camera-like positives is not row (f); the default (augment=none) is."""
     from matl.reporting.configs import dataset_name
     from matl.reporting.rows import classify_training, describe
     from tests.conftest import compose_config
 
-    default = compose_config("train", [], tmp_path)
-    assert classify_training(default, dataset_name(default.data)) == (None, None, False)
-    assert "augment=camera" in describe(default, "train", {})
-    paper_f = compose_config("train", ["augment=none"], tmp_path)
+    camera = compose_config("train", ["augment=camera"], tmp_path)
+    assert classify_training(camera, dataset_name(camera.data)) == (None, None, False)
+    assert "augment=camera" in describe(camera, "train", {})
+    paper_f = compose_config("train", [], tmp_path)
     assert classify_training(paper_f, dataset_name(paper_f.data))[0] == "f"
