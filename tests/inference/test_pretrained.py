@@ -1,0 +1,63 @@
+"""The model shipped in the package: small, loads offline, and predict uses it when no ckpt= is given."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import matl.inference.api
+from matl import Recognizer
+from matl.inference.files import predict
+from matl.utils.errors import MatlError
+from tests.conftest import compose_config
+from tests.predict_helpers import make_files
+
+SHIPPED = matl.inference.api.PRETRAINED
+needs_model = pytest.mark.skipif(not SHIPPED.is_file(), reason=f"{SHIPPED} is not in this checkout")
+
+
+@needs_model
+def test_the_shipped_model_is_small_and_loads_offline() -> None:
+    assert SHIPPED.stat().st_size < 10 * 2**20
+    ckpt = torch.load(SHIPPED, map_location="cpu", weights_only=True)  # plain tensors and containers only
+    assert set(ckpt) >= {"state_dict", "matl_config", "matl_image_size", "matl_num_anchors"}
+    assert "optimizer_states" not in ckpt
+    rec = Recognizer.pretrained()
+    assert rec.image_size == ckpt["matl_image_size"] == 100 and rec.num_anchors == ckpt["matl_num_anchors"]
+
+
+@needs_model
+def test_predict_without_ckpt_uses_the_shipped_model(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    lines = {}
+    for name, extra in (("default", []), ("explicit", [f"ckpt={SHIPPED}"])):
+        out = tmp_path / f"{name}.jsonl"
+        cfg = compose_config("predict", [f"gallery={gallery}", f"images={queries}", f"out={out}", "cache=false",
+                                         *extra], tmp_path / name)
+        predict(cfg)
+        lines[name] = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(lines["default"]) == len(list(queries.iterdir()))
+    strip = [{k: v for k, v in r.items() if k != "image"} for r in lines["default"]]
+    assert strip == [{k: v for k, v in r.items() if k != "image"} for r in lines["explicit"]]
+    # the Python API gives the same answer on the same file
+    rec = Recognizer.pretrained().enrol(gallery, cache=False)
+    first = sorted(queries.iterdir())[0]
+    match = rec.predict(first)
+    record = next(r for r in lines["default"] if Path(r["image"]).name == first.name)
+    assert match.object == record["object"] and np.allclose(match.H, record["H"], atol=1e-6)
+
+
+def test_predict_without_ckpt_and_without_a_shipped_model_is_one_line(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(matl.inference.api, "PRETRAINED", tmp_path / "missing.ckpt")
+    gallery, queries, _ = make_files(tmp_path)
+    cfg = compose_config("predict", [f"gallery={gallery}", f"images={queries}", f"out={tmp_path / 'p.jsonl'}"],
+                         tmp_path)
+    with pytest.raises(MatlError, match="ckpt=... is required: no pretrained model ships"):
+        predict(cfg)
+    assert not (tmp_path / "p.jsonl").exists()
+    with pytest.raises(MatlError, match="no pretrained model ships"):
+        Recognizer.pretrained()
