@@ -56,7 +56,7 @@ def test_predict_without_ckpt_and_without_a_shipped_model_is_one_line(tmp_path: 
     gallery, queries, _ = make_files(tmp_path)
     cfg = compose_config("predict", [f"gallery={gallery}", f"images={queries}", f"out={tmp_path / 'p.jsonl'}"],
                          tmp_path)
-    with pytest.raises(MatlError, match="ckpt=... is required: no pretrained model ships"):
+    with pytest.raises(MatlError, match=r"ckpt=\.\.\. is required: no pretrained model ships"):
         predict(cfg)
     assert not (tmp_path / "p.jsonl").exists()
     with pytest.raises(MatlError, match="no pretrained model ships"):
