@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[2]
 SYNTHETIC = "matl.data.catalog.SyntheticCatalog"
+SHELVES = "matl.data.catalog.shelves.ShelfCatalog"
 CROP_FILL = 0.6  # the catalogs frame each plane's longer side at 0.6 of the image (data.source.fill)
 WARP_BATCH = 250
 METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
@@ -60,9 +61,13 @@ METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
 
 # ------------------------------------------------------------------------------------ never seen
 def _catalog_products(source: dict[str, Any]) -> list[Any]:
-    """The product specs of a ``SyntheticCatalog`` config, built without Hydra (no rendering)."""
+    """The product specs of a ``SyntheticCatalog`` or ``ShelfCatalog`` config, built without Hydra (no rendering)."""
     from matl.data.catalog import SyntheticCatalog
+    from matl.data.catalog.shelves import ShelfCatalog
 
+    if source.get("_target_") == SHELVES:
+        keys = ("shelves", "first_seed", "catalog")
+        return ShelfCatalog(**{k: source[k] for k in keys if k in source}).products()
     keys = ("catalog", "seed", "subset")
     return SyntheticCatalog(**{k: source[k] for k in keys if k in source}).products()
 
@@ -82,7 +87,7 @@ def seen_products(train_data: dict[str, Any], test_source: Any,
     """
     source = train_data.get("source") or {}
     objects = train_data.get("objects")
-    if source.get("_target_") != SYNTHETIC or not hasattr(test_source, "products"):
+    if source.get("_target_") not in (SYNTHETIC, SHELVES) or not hasattr(test_source, "products"):
         kind = source.get("_target_", "?")
         return {}, {}, f"not verified: the training source is {kind}, not a procedural catalog"
     train = _catalog_products(source)
@@ -105,7 +110,9 @@ def seen_products(train_data: dict[str, Any], test_source: Any,
                     if (q.brand.name, q.kind) == (p.brand.name, p.kind)]
             if kin:
                 related[p.name] = kin
-    what = f"SyntheticCatalog(catalog={source.get('catalog')!r}, seed={source.get('seed')})"
+    what = (f"ShelfCatalog(shelves={source.get('shelves')}, first_seed={source.get('first_seed')})"
+            if source.get("_target_") == SHELVES else
+            f"SyntheticCatalog(catalog={source.get('catalog')!r}, seed={source.get('seed')})")
     return seen, related, f"product specs compared with the training catalog {what}"
 
 

@@ -203,6 +203,16 @@ def test_seen_products_of_the_catalogs() -> None:
     assert len(seen) == 34
     seen, _, how = seen_products({"source": {"_target_": "matl.data.meshes.X"}}, arc, [])
     assert seen == {} and how.startswith("not verified")
+    # the shelves catalog is compared too: its generated brands share no product with the named catalogs,
+    # and a shelf product is seen by a model trained on its shelves
+    from matl.data.catalog.shelves import ShelfCatalog
+
+    shelves = {"source": {"_target_": "matl.data.catalog.shelves.ShelfCatalog", "shelves": 1, "first_seed": 100}}
+    seen, _, how = seen_products(shelves, arc, [p.name for p in arc.products()])
+    assert seen == {} and how.startswith("product specs compared") and "ShelfCatalog" in how
+    shelf = ShelfCatalog(shelves=1, first_seed=100)
+    seen, _, _ = seen_products(shelves, shelf, [p.name for p in shelf.products()])
+    assert len(seen) == 34
 
 
 @pytest.mark.parametrize("module,args", [("matl.unseen", []), ("matl.score", ["predictions=/nonexistent.jsonl",
