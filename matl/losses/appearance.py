@@ -10,9 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-#: the smallest mask mean divided by (a mask emptier than this gives a term near 0, not a division by 0)
-MIN_MASK_AREA = 1e-6
-
 
 def appearance_distance(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 1,
                         mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -23,31 +20,46 @@ def appearance_distance(anchors: torch.Tensor, warped: torch.Tensor, levels: int
     anchor, which widens the basin in which the STN gets a useful gradient.
 
     ``mask`` (beyond the paper; ``model.appearance_mask=foreground``): ``(..., 1, H, W)`` weights in
-    [0, 1] (a foreground mask), broadcast over the channels. Both images are multiplied by it, and each
-    level's term is the mean of ``|anchors * mask - warped * mask|`` divided by the mean of the mask:
-    at full resolution the mean absolute difference over the masked pixels only. The masked images and
-    the mask are average-pooled together from level to level, so a pixel outside the mask changes no
-    level, and a coarse cell counts by the share of it the mask covers. A mask of ones gives exactly
-    the unmasked value; an empty mask gives 0.
+    [0, 1] (a foreground mask), broadcast over the channels. Both images are multiplied by it and each
+    level's term is the mean of ``|anchors * mask - warped * mask|`` over *all* pixels and channels (the
+    image area, as the unmasked loss): a pixel outside the mask adds 0, so the masked value is the
+    unmasked one less what the background would cost, and ``lam`` keeps the paper's scale. The masked
+    images are average-pooled from level to level, so a pixel outside the mask changes no level. A mask
+    of ones gives exactly the unmasked value; an empty mask gives 0. There is no division by the mask:
+    a normaliser that depends on a mask moved by a predicted homography (the backward term's) lets the
+    loss ignore how much of the product the mask still covers, and its gradient grows as ``1 / area^2``
+    when the prediction shrinks the mask (docs/decisions.md).
     """
     if levels < 1:
         raise ValueError(f"appearance levels must be >= 1, got {levels}")
     if mask is not None:
         _check_mask(mask, anchors)
         anchors, warped = anchors * mask, warped * mask
-    total = _level_distance(anchors, warped, mask)
+    total = _level_distance(anchors, warped)
     for _ in range(levels - 1):
         anchors, warped = _half(anchors), _half(warped)
-        mask = _half(mask) if mask is not None else None
-        total = total + _level_distance(anchors, warped, mask)
+        total = total + _level_distance(anchors, warped)
     return total / levels
 
 
-def _level_distance(anchors: torch.Tensor, warped: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-    distance = (anchors - warped).abs().mean(dim=(-3, -2, -1))
-    if mask is None:
-        return distance
-    return distance / mask.mean(dim=(-3, -2, -1)).clamp_min(MIN_MASK_AREA)
+def _level_distance(anchors: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+    return (anchors - warped).abs().mean(dim=(-3, -2, -1))
+
+
+def select_anchors(distances: torch.Tensor, masks: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 3: the index ``(B,)`` of the anchor nearest in appearance, from ``distances`` ``(B, N)``.
+
+    With ``masks`` ``(B, N, 1, H, W)`` (the anchors' own foregrounds, data, not a prediction) each
+    anchor's image-area distance is divided by its foreground share before the comparison, so that an
+    anchor is not chosen for showing less product; an anchor with an empty mask is never chosen unless
+    all are. Without masks this is ``distances.argmin(dim=1)``.
+    """
+    if masks is None:
+        return distances.argmin(dim=1)
+    share = masks.detach().mean(dim=(-3, -2, -1))                           # (B, N)
+    per_foreground = torch.where(share > 0, distances.detach() / share.clamp_min(torch.finfo(share.dtype).tiny),
+                                 torch.full_like(share, float("inf")))
+    return per_foreground.argmin(dim=1)
 
 
 def _check_mask(mask: torch.Tensor, images: torch.Tensor) -> None:
@@ -68,7 +80,9 @@ def anchor_distances(anchors: torch.Tensor, warped: torch.Tensor, levels: int = 
 
     The one computation behind the multiple-anchor loss, the selection layer and the recognizer's
     ``anchor_choice=appearance``; ``levels`` as in :func:`appearance_distance`. ``masks``: ``(B, N, 1, H, W)``
-    foreground of each anchor; each anchor's distance is then over its own foreground.
+    foreground of each anchor; each anchor's distance is then over its own foreground (image-area
+    normalised, :func:`appearance_distance`; Eq. 3 compares them per unit of foreground,
+    :func:`select_anchors`).
     """
     if anchors.ndim != 5 or warped.ndim != 4 or anchors.shape[0] != warped.shape[0]:
         raise ValueError(f"anchors must be (B, N, 3, H, W) and warped (B, 3, H, W), got "
@@ -99,7 +113,8 @@ class MultiAnchorAppearanceLoss(nn.Module):
 
     ``forward(anchors (B, N, 3, H, W), warped (B, 3, H, W), masks (B, N, 1, H, W) | None) -> (loss,
     selected (B,))``; the selection is Eq. 3, so the loss equals Eq. 4 on the selected anchor. N = 1 is
-    Eq. 1. With ``masks`` each anchor's L1 is over its own foreground (:func:`appearance_distance`).
+    Eq. 1. With ``masks`` each anchor's L1 is over its own foreground (:func:`appearance_distance`) and
+    the selection compares them per unit of foreground (:func:`select_anchors`).
 
     Args:
         levels: pyramid levels of :func:`appearance_distance` (paper: 1).
@@ -112,5 +127,8 @@ class MultiAnchorAppearanceLoss(nn.Module):
     def forward(self, anchors: torch.Tensor, warped: torch.Tensor, masks: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         distances = anchor_distances(anchors, warped, self.levels, masks)  # (B, N)
-        best, selected = distances.min(dim=1)
-        return best.mean(), selected
+        if masks is None:
+            best, selected = distances.min(dim=1)
+            return best.mean(), selected
+        selected = select_anchors(distances, masks)
+        return distances.gather(1, selected[:, None]).mean(), selected

@@ -61,7 +61,12 @@ class MATLModule(PoseEvaluationModule):
             (when a batch has none, ``anchors.amax(dim=2, keepdim=True) > 0``: the data's background is
             exactly 0). The forward term and Eq. 3 use each anchor's own mask; the backward term uses the
             selected anchor's mask warped into the positive's frame by the predicted homography (no
-            mask of the positive is used), so background behind a query costs nothing.
+            mask of the positive is used), so background behind a query costs nothing. Every term is a
+            mean over the image area (no division by a mask, :func:`~matl.losses.appearance_distance`), so
+            ``lam`` keeps its scale and no gradient grows as a warped mask shrinks; Eq. 3 compares the
+            anchors per unit of their own foreground. Measured (docs/decisions.md): trains finitely, but with
+            ``augment=camera`` the pose still drifts towards zooming into the positive (nothing outside the
+            anchor's foreground pays for it), so it stays off.
     """
 
     def __init__(self, feature_net: FeatureNet, stn: SpatialTransformer | None, metric_loss: nn.Module,
