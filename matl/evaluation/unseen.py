@@ -61,15 +61,9 @@ METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
 
 # ------------------------------------------------------------------------------------ never seen
 def _catalog_products(source: dict[str, Any]) -> list[Any]:
-    """The product specs of a ``SyntheticCatalog`` or ``ShelfCatalog`` config, built without Hydra (no rendering)."""
-    from matl.data.catalog import SyntheticCatalog
-    from matl.data.catalog.shelves import ShelfCatalog
-
-    if source.get("_target_") == SHELVES:
-        keys = ("shelves", "first_seed", "catalog")
-        return ShelfCatalog(**{k: source[k] for k in keys if k in source}).products()
-    keys = ("catalog", "seed", "subset")
-    return SyntheticCatalog(**{k: source[k] for k in keys if k in source}).products()
+    """The product specs of a procedural catalog's config (``SyntheticCatalog``, ``ShelfCatalog``): the
+    catalog is built from its own config, which renders nothing until asked."""
+    return hydra.utils.instantiate(source).products()
 
 
 def seen_products(train_data: dict[str, Any], test_source: Any,
