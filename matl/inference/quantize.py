@@ -90,24 +90,24 @@ class _FeatureCore(nn.Module):
 class _Regressor(nn.Module):
     """A (quantised) :class:`_RegressorCore` plus the identity in float: ``(B, 3, S, S) -> (B, 3, 3)``."""
 
-    def __init__(self, core: nn.Module) -> None:
+    def __init__(self, core: nn.Module, input_norm: nn.Module) -> None:
         super().__init__()
-        self.core = core
+        self.core, self.input_norm = core, input_norm   # the float network's input normalisation, in float
         self.register_buffer("eye", torch.eye(3).flatten(), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return (F.pad(self.core(images), (0, 1)) + self.eye).view(-1, 3, 3)
+        return (F.pad(self.core(self.input_norm(images)), (0, 1)) + self.eye).view(-1, 3, 3)
 
 
 class _Feature(nn.Module):
     """A (quantised) :class:`_FeatureCore` plus the global max pool and normalisation in float."""
 
-    def __init__(self, core: nn.Module, normalize: bool) -> None:
+    def __init__(self, core: nn.Module, normalize: bool, input_norm: nn.Module) -> None:
         super().__init__()
-        self.core, self.normalize = core, bool(normalize)
+        self.core, self.normalize, self.input_norm = core, bool(normalize), input_norm
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = torch.amax(self.core(images), dim=(-2, -1))
+        x = torch.amax(self.core(self.input_norm(images)), dim=(-2, -1))
         return F.normalize(x, dim=-1) if self.normalize else x
 
 
@@ -224,12 +224,14 @@ class QuantizedQueryPath:
         observed_feature = prepare_fx(feature_core, _qconfig_mapping(feature_core), example)
         # the float query graph with observers: the regressor sees raw and warped queries, c() s(q), as at test time
         # (the observed modules keep the modes prepare_fx gave them)
-        observer = QueryGraph(self.stn, self.feature_net, self.image_size, regressor=_Regressor(observed_regressor),
-                              feature=_Feature(observed_feature, self.feature_net.normalize))
+        regressor_norm, feature_norm = self.stn.regressor.input_norm, self.feature_net.input_norm
+        observer = QueryGraph(self.stn, self.feature_net, self.image_size,
+                              regressor=_Regressor(observed_regressor, regressor_norm),
+                              feature=_Feature(observed_feature, self.feature_net.normalize, feature_norm))
         for start in range(0, len(calibration), batch_size):
             observer(calibration[start:start + batch_size].float())
-        return (_Regressor(convert_fx(observed_regressor)).eval(),
-                _Feature(convert_fx(observed_feature), self.feature_net.normalize).eval())
+        return (_Regressor(convert_fx(observed_regressor), regressor_norm).eval(),
+                _Feature(convert_fx(observed_feature), self.feature_net.normalize, feature_norm).eval())
 
     def __call__(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.graph(queries)

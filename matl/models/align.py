@@ -27,6 +27,7 @@ returned; the stage's ``query_H_anchor`` replaces the STN's in the Prediction.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -158,12 +159,21 @@ class AlignmentStage(nn.Module):
             ``s()`` as well.
         lr_scale: training only: the stage's parameters are optimised at this multiple of
             ``model.optimizer.lr`` (:meth:`matl.models.module.MATLModule.optimizer_param_groups`).
+        optimizer: training only: a partially-instantiated optimiser of the stage's own (e.g. Adam),
+            so that the stage need not train under ``s()``'s SGD; None: one optimiser for the whole
+            model, the stage in its own group at ``lr_scale``. Given, the model steps both itself
+            (:meth:`matl.models.module.MATLModule.configure_optimizers`) and ``lr_scale`` is unused.
     """
 
     def __init__(self, image_size: int = 100, iterations: int = 3, downsample: int = 2,
                  channels: tuple[int, ...] = (16, 32, 64), hidden: int = 128, max_offset: float = 0.5,
-                 max_condition: float = 1e4, detach_input: bool = True, lr_scale: float = 1.0) -> None:
+                 max_condition: float = 1e4, detach_input: bool = True, lr_scale: float = 1.0,
+                 optimizer: Callable[..., torch.optim.Optimizer] | None = None) -> None:
         super().__init__()
+        if optimizer is not None and not callable(optimizer):
+            raise MatlError("model.align.optimizer must be an optimiser factory (_target_: torch.optim.Adam with "
+                            "_partial_: true) or null")
+        self.optimizer_factory = optimizer
         if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
             raise MatlError(f"model.align.iterations={iterations} is invalid: use an integer >= 1")
         if not float(max_condition) > 1.0:

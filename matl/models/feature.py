@@ -7,6 +7,39 @@ import torch.nn.functional as F
 from torch import nn
 
 
+class ChannelStandardize(nn.Module):
+    """Each image's channels to zero mean and unit variance: ``(B, C, H, W) -> (B, C, H, W)``.
+
+    Beyond the paper. A network behind it sees the same input whatever the exposure gain, black
+    level or white balance (per-channel gain) of the camera, up to clipping and 8 bits: the affine
+    part of a camera's photometric change cancels. ``eps`` (in the input's units, images in [0, 1])
+    keeps a flat channel from being blown up to noise.
+    """
+
+    def __init__(self, eps: float = 0.02) -> None:
+        super().__init__()
+        self.eps = float(eps)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        mean = images.mean(dim=(-2, -1), keepdim=True)
+        var = (images - mean).square().mean(dim=(-2, -1), keepdim=True)
+        return (images - mean) * torch.rsqrt(var + self.eps ** 2)
+
+
+#: values of the networks' ``input_norm`` option
+INPUT_NORMS = ("none", "channel")
+
+
+def input_normalization(kind: str) -> nn.Module:
+    """The module for ``input_norm``: ``none`` (the paper: raw [0, 1] pixels) or ``channel``
+    (:class:`ChannelStandardize`)."""
+    if kind == "none":
+        return nn.Identity()
+    if kind == "channel":
+        return ChannelStandardize()
+    raise ValueError(f"input_norm={kind!r} is not a known input normalisation; use one of {', '.join(INPUT_NORMS)}")
+
+
 class FeatureNet(nn.Module):
     """``c()``: ``(B, 3, H, W) -> (B, embedding_dim)``.
 
@@ -20,12 +53,15 @@ class FeatureNet(nn.Module):
         strides: stride of each convolution.
         pool: kernel (= stride) of the max pool between the convolutions.
         normalize: L2-normalise the embedding (distances then live in [0, 2]).
+        input_norm: ``none`` (paper) or ``channel``: each image standardised per channel first
+            (:class:`ChannelStandardize`, docs/decisions.md).
     """
 
     def __init__(self, channels: tuple[int, int] = (32, 128), kernel_sizes: tuple[int, int] = (5, 5),
                  strides: tuple[int, int] = (2, 1), pool: int = 2, normalize: bool = True,
-                 in_channels: int = 3) -> None:
+                 in_channels: int = 3, input_norm: str = "none") -> None:
         super().__init__()
+        self.input_norm = input_normalization(input_norm)
         c1, c2 = channels
         k1, k2 = kernel_sizes
         s1, s2 = strides
@@ -36,7 +72,7 @@ class FeatureNet(nn.Module):
         self.embedding_dim = c2
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = self.pool(F.relu(self.conv1(images)))
+        x = self.pool(F.relu(self.conv1(self.input_norm(images))))
         x = F.relu(self.conv2(x))
         # max (one index per channel) rather than amax: amax's backward, which splits the gradient
         # among ties, cost ~15% of a training step on the CPU; the values are identical
@@ -47,7 +83,7 @@ class FeatureNet(nn.Module):
         """``forward`` for a traced inference graph (:class:`matl.inference.recognizer.QueryGraph`): the same
         ops, except the global max pool as ``amax``, the same values without the index search (4x
         faster on the dense map a frozen TorchScript graph hands it; no backward is needed there)."""
-        x = self.pool(F.relu(self.conv1(images)))
+        x = self.pool(F.relu(self.conv1(self.input_norm(images))))
         x = F.relu(self.conv2(x))
         x = torch.amax(x, dim=(-2, -1))
         return F.normalize(x, dim=-1) if self.normalize else x
@@ -63,7 +99,7 @@ class FeatureNet(nn.Module):
         """
         if images.device.type != "cpu" or images.dtype != torch.float32 or not torch.backends.mkldnn.is_available():
             return self.forward(images)
-        x = images.contiguous(memory_format=torch.channels_last)
+        x = self.input_norm(images).contiguous(memory_format=torch.channels_last)
         x = self.pool(conv_infer(self.conv1, x).relu_())
         x = conv_infer(self.conv2, x).relu_()
         x = x.permute(0, 2, 3, 1).flatten(1, 2).amax(dim=1)  # channels-last: a plain (B, H*W, C) view

@@ -96,6 +96,8 @@ class MATLModule(PoseEvaluationModule):
         self.anchor_choice = anchor_choice
         self.appearance, self.appearance_levels = appearance, appearance_levels
         self.align, self.appearance_mask = align, appearance_mask
+        # a stage with an optimiser of its own: this module steps the two optimisers itself
+        self.automatic_optimization = getattr(align, "optimizer_factory", None) is None
         self.degenerate_count = 0  # training STN outputs replaced by identity, whole run (kept across resumes)
 
     # ---------------------------------------------------------------- training
@@ -162,6 +164,24 @@ class MATLModule(PoseEvaluationModule):
         return loss
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        loss = self.training_loss(batch)
+        if not self.automatic_optimization:  # the model and the alignment stage, each its own optimiser
+            optimizers = self.optimizers()
+            for optimizer in optimizers:
+                optimizer.zero_grad()
+            self.manual_backward(loss)
+            for optimizer in optimizers:
+                optimizer.step()
+        return loss
+
+    def on_train_epoch_end(self) -> None:
+        if not self.automatic_optimization:  # Lightning steps no scheduler under manual optimisation
+            schedulers = self.lr_schedulers()
+            for scheduler in schedulers if isinstance(schedulers, list) else [schedulers] if schedulers else []:
+                scheduler.step()
+
+    def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The training loss of a batch (metric loss + ``lam`` x appearance), logged."""
         anchors, positive, negative = batch["anchors"], batch["positive"], batch["negative"]
         if anchors.shape[1] != self.num_anchors:
             raise ValueError(f"batch has {anchors.shape[1]} anchors per plane but the model was built "
@@ -206,13 +226,29 @@ class MATLModule(PoseEvaluationModule):
     def optimizer_param_groups(self) -> Any:
         """All parameters in one group; with an alignment stage its parameters form a second group at
         ``align.lr_scale`` times the learning rate (a fresh network refining a pose that ``s()`` already
-        brought close gets small gradients)."""
+        brought close gets small gradients), or, when the stage has an optimiser of its own, are left
+        to it."""
         if self.align is None:
             return self.parameters()
         stage = {id(p) for p in self.align.parameters()}
         rest = [p for p in self.parameters() if id(p) not in stage]
+        if not self.automatic_optimization:
+            return rest
         return [{"params": rest}, {"params": list(self.align.parameters()),
                                    "lr_scale": float(getattr(self.align, "lr_scale", 1.0))}]
+
+    def configure_optimizers(self) -> Any:
+        """The model's optimiser (and scheduler); with a stage that has its own optimiser, both, the
+        scheduler applied to each."""
+        config = super().configure_optimizers()
+        if self.automatic_optimization:
+            return config
+        stage = self.align.optimizer_factory(params=self.align.parameters())
+        if not isinstance(config, dict):
+            return [config, stage]
+        main = config["optimizer"]
+        return ([main, stage], [{"scheduler": config["lr_scheduler"]["scheduler"], "interval": "epoch"},
+                                {"scheduler": self.scheduler_factory(optimizer=stage), "interval": "epoch"}])
 
     # -------------------------------------------------------------- evaluation
     def build_recognizer(self, gallery: Gallery) -> Recognizer:

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from matl.geometry import guard_homographies, normalised_to_pixel, sample_by_normalised, sample_by_normalised_kornia
-from matl.models.feature import conv_infer
+from matl.models.feature import conv_infer, input_normalization
 
 #: ``(B, 3, S, S) -> (B, 3, 3)`` normalised sampling homographies
 Regressor = Callable[[torch.Tensor], torch.Tensor]
@@ -76,14 +76,18 @@ class HomographyRegressor(nn.Module):
 
     ``batch_norm`` (beyond the paper, which says nothing of normalisation) puts BatchNorm after
     each convolution; it lets plain SGD at the paper's learning rate train the regressor faster.
+    ``input_norm`` (beyond the paper): ``channel`` standardises each image per channel first
+    (:class:`matl.models.feature.ChannelStandardize`), so the pose does not move with exposure.
 
     ``(B, 3, H, W) -> (B, 3, 3)`` normalised sampling homography.
     """
 
     def __init__(self, image_size: int = 100, channels: tuple[int, int] = (16, 32),
                  kernel_sizes: tuple[int, int] = (5, 5), strides: tuple[int, int] = (2, 1),
-                 pool: int = 2, hidden: int = 128, in_channels: int = 3, batch_norm: bool = False) -> None:
+                 pool: int = 2, hidden: int = 128, in_channels: int = 3, batch_norm: bool = False,
+                 input_norm: str = "none") -> None:
         super().__init__()
+        self.input_norm = input_normalization(input_norm)
         c1, c2 = channels
         k1, k2 = kernel_sizes
         s1, s2 = strides
@@ -104,7 +108,7 @@ class HomographyRegressor(nn.Module):
         nn.init.zeros_(self.fc2.bias)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = self.features(images).flatten(1)
+        x = self.features(self.input_norm(images)).flatten(1)
         delta = self.fc2(F.relu(self.fc1(x)))
         eye = torch.eye(3, dtype=delta.dtype, device=delta.device).flatten()[:8]
         entries = torch.cat([eye + delta, torch.ones_like(delta[:, :1])], dim=1)
@@ -120,7 +124,7 @@ class HomographyRegressor(nn.Module):
         """
         if images.device.type != "cpu" or images.dtype != torch.float32 or not torch.backends.mkldnn.is_available():
             return self.forward(images)
-        x = images.contiguous(memory_format=torch.channels_last)
+        x = self.input_norm(images).contiguous(memory_format=torch.channels_last)
         for layer in self.features:
             if isinstance(layer, nn.Conv2d):
                 x = conv_infer(layer, x)

@@ -338,3 +338,44 @@ def test_the_stage_trains_at_its_own_multiple_of_the_learning_rate() -> None:
     assert len(rest["params"]) + len(stage["params"]) == len(list(model.parameters()))
     with pytest.raises(MatlError, match="lr_scale"):
         AlignmentStage(S, lr_scale=0.0)
+
+
+def test_a_stage_with_its_own_optimiser_is_stepped_by_it_and_the_model_by_its_own(tmp_path: Path) -> None:
+    import functools
+
+    optimizer = functools.partial(torch.optim.SGD, lr=0.01, momentum=0.9)
+    adam = functools.partial(torch.optim.Adam, lr=1e-3)
+    scheduler = functools.partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4)
+    model = module(AlignmentStage(S, optimizer=adam), optimizer=optimizer)
+    model.scheduler_factory = scheduler
+    assert model.automatic_optimization is False
+    (main, stage), schedulers = model.configure_optimizers()
+    assert isinstance(main, torch.optim.SGD) and isinstance(stage, torch.optim.Adam)
+    assert {id(p) for g in stage.param_groups for p in g["params"]} == {id(p) for p in model.align.parameters()}
+    n_main = sum(len(g["params"]) for g in main.param_groups)
+    assert n_main + len(list(model.align.parameters())) == len(list(model.parameters()))
+    assert [s["scheduler"].optimizer for s in schedulers] == [main, stage]
+    # without one, a single optimiser as before; a non-callable optimiser is refused
+    assert module(AlignmentStage(S), optimizer=optimizer).automatic_optimization is True
+    with pytest.raises(MatlError, match="optimiser factory"):
+        AlignmentStage(S, optimizer=3)
+    # the config value composes to an Adam factory
+    cfg = compose_config("train", ["scale=smoke", "model/align=corners",
+                                   "model.align.optimizer={_target_:torch.optim.Adam,_partial_:true,lr:0.001}"], tmp_path)
+    built = hydra.utils.instantiate(cfg.model)
+    assert built.automatic_optimization is False and isinstance(built.align.optimizer_factory, functools.partial)
+
+
+@pytest.mark.slow
+def test_tiny_run_with_the_stages_own_optimiser_trains_both(tiny_train_cfg) -> None:
+    cfg = tiny_train_cfg(["model/align=corners",
+                          "model.align.optimizer={_target_:torch.optim.Adam,_partial_:true,lr:0.001}"], run="align_adam")
+    from matl.training.fit import train
+
+    metrics = train(cfg)
+    assert math.isfinite(metrics["pose_err"])
+    state = torch.load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt", weights_only=False)
+    sgd, adam = state["optimizer_states"]
+    assert "momentum_buffer" in next(iter(sgd["state"].values()))
+    assert "exp_avg" in next(iter(adam["state"].values()))
+    assert all(s["last_epoch"] == cfg.trainer.max_epochs for s in state["lr_schedulers"])
