@@ -108,7 +108,7 @@ def test_paper_imports_nothing_heavy() -> None:
     assert done.returncode == 0 and done.stdout.strip() == "[]", done.stderr
 
 
-@pytest.mark.parametrize("model", ["matl", "matl_fast", "tl", "stn_classifier"])
+@pytest.mark.parametrize("model", ["matl", "matl_fast", "matl_camera", "tl", "stn_classifier"])
 def test_paper_scale_sets_the_papers_model_behaviour(model: str, tmp_path: Path) -> None:
     cfg = compose_config("train", ["scale=paper", f"model={model}"], tmp_path)
     OmegaConf.resolve(cfg)

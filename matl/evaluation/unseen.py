@@ -374,11 +374,12 @@ def _own_command() -> str:
 
 
 def method_overrides(method: str) -> list[str]:
-    """The user's own overrides of a method's settings, as predict's keys: ``refiner.*`` for matl_refine,
-    ``baselines.<name>.*`` (here) -> ``baseline.*`` (predict) for a keypoint baseline."""
+    """The user's own overrides of a method's settings, as predict's keys: ``refiner=<choice>`` and
+    ``refiner.*`` for matl_refine, ``baselines.<name>.*`` (here) -> ``baseline.*`` (predict) for a
+    keypoint baseline."""
     overrides = _task_overrides()
     if method == "matl_refine":
-        return [o for o in overrides if o.lstrip("+~").startswith("refiner.")]
+        return [o for o in overrides if o.lstrip("+~").startswith(("refiner.", "refiner="))]
     prefix = f"baselines.{method}."
     return [o.replace(prefix, "baseline.", 1) for o in overrides if o.lstrip("+~").startswith(prefix)]
 

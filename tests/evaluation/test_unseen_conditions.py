@@ -223,6 +223,16 @@ def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
     assert method_overrides("sift") == []  # called as a function: no command-line overrides
 
 
+def test_the_refiner_choice_and_its_keys_reach_matl_refine_only(monkeypatch) -> None:
+    import matl.evaluation.unseen as unseen
+
+    given = ["ckpt=c", "refiner=fast", "refiner.levels=2", "baselines.sift.ratio=0.7", "queries=10"]
+    monkeypatch.setattr(unseen, "_task_overrides", lambda: given)
+    assert method_overrides("matl_refine") == ["refiner=fast", "refiner.levels=2"]
+    assert method_overrides("matl") == []
+    assert method_overrides("sift") == ["baseline.ratio=0.7"]
+
+
 def test_benchmark_table_has_a_row_per_condition_and_a_column_per_method() -> None:
     methods = ["matl", "sift"]
     results = {c: {"num_queries": 10, "num_objects": 3, "num_planes": 6, "image_size": 100, "checkpoint": "c.ckpt",
