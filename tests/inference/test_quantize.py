@@ -50,8 +50,9 @@ def toy_queries(images: torch.Tensor, count: int, seed: int) -> tuple[torch.Tens
     return warp_image(images[source], H.float()), source
 
 
-def test_int8_path_agrees_with_float() -> None:
-    feature_net, stn = networks()
+@pytest.mark.parametrize("input_norm", ["none", "channel"])
+def test_int8_path_agrees_with_float(input_norm: str) -> None:
+    feature_net, stn = networks(input_norm=input_norm)
     g = gallery(feature_net)
     calibration = calibration_images(g.images, 128, seed=1)
     path = QuantizedQueryPath(feature_net, stn, S, calibration)

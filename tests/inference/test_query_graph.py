@@ -20,12 +20,13 @@ from tests.speed_helpers import textured_planes
 S = 32
 
 
-def networks(seed: int = 0, batch_norm: bool = False) -> tuple[FeatureNet, SpatialTransformer]:
+def networks(seed: int = 0, batch_norm: bool = False, input_norm: str = "none") -> tuple[FeatureNet, SpatialTransformer]:
     torch.manual_seed(seed)
-    stn = SpatialTransformer(HomographyRegressor(image_size=S, batch_norm=batch_norm), image_size=S, iterations=2)
+    stn = SpatialTransformer(HomographyRegressor(image_size=S, batch_norm=batch_norm, input_norm=input_norm),
+                             image_size=S, iterations=2)
     nn.init.normal_(stn.regressor.fc2.weight, std=0.02)  # a real homography, not the identity it starts at
     nn.init.normal_(stn.regressor.fc2.bias, std=0.05)
-    return FeatureNet().eval(), stn.eval()
+    return FeatureNet(input_norm=input_norm).eval(), stn.eval()
 
 
 def gallery(feature_net: FeatureNet, planes: int = 5, N: int = 4) -> Gallery:
