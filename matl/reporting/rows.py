@@ -60,6 +60,9 @@ def beyond_paper(cfg: DictConfig) -> list[str]:
         found.append("align")
     if select(cfg, "model.appearance_mask", "none") not in (None, "none"):
         found.append(f"appearance_mask={select(cfg, 'model.appearance_mask')}")
+    norms = {select(cfg, "model.feature_net.input_norm", "none"), select(cfg, "model.stn.regressor.input_norm", "none")}
+    if norms - {None, "none"}:
+        found.append("input_norm=" + "/".join(sorted(str(n) for n in norms - {None, "none"})))
     return found
 
 

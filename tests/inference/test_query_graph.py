@@ -20,7 +20,8 @@ from tests.speed_helpers import textured_planes
 S = 32
 
 
-def networks(seed: int = 0, batch_norm: bool = False, input_norm: str = "none") -> tuple[FeatureNet, SpatialTransformer]:
+def networks(seed: int = 0, batch_norm: bool = False,
+             input_norm: str = "none") -> tuple[FeatureNet, SpatialTransformer]:
     torch.manual_seed(seed)
     stn = SpatialTransformer(HomographyRegressor(image_size=S, batch_norm=batch_norm, input_norm=input_norm),
                              image_size=S, iterations=2)

@@ -31,6 +31,7 @@ from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 
 S = 32
+ADAM = "{_target_:torch.optim.Adam,_partial_:true,lr:0.001}"   # model.align.optimizer on the command line
 
 
 def force_offsets(stage: AlignmentStage, offsets: torch.Tensor) -> None:
@@ -360,16 +361,14 @@ def test_a_stage_with_its_own_optimiser_is_stepped_by_it_and_the_model_by_its_ow
     with pytest.raises(MatlError, match="optimiser factory"):
         AlignmentStage(S, optimizer=3)
     # the config value composes to an Adam factory
-    cfg = compose_config("train", ["scale=smoke", "model/align=corners",
-                                   "model.align.optimizer={_target_:torch.optim.Adam,_partial_:true,lr:0.001}"], tmp_path)
+    cfg = compose_config("train", ["scale=smoke", "model/align=corners", f"model.align.optimizer={ADAM}"], tmp_path)
     built = hydra.utils.instantiate(cfg.model)
     assert built.automatic_optimization is False and isinstance(built.align.optimizer_factory, functools.partial)
 
 
 @pytest.mark.slow
 def test_tiny_run_with_the_stages_own_optimiser_trains_both(tiny_train_cfg) -> None:
-    cfg = tiny_train_cfg(["model/align=corners",
-                          "model.align.optimizer={_target_:torch.optim.Adam,_partial_:true,lr:0.001}"], run="align_adam")
+    cfg = tiny_train_cfg(["model/align=corners", f"model.align.optimizer={ADAM}"], run="align_adam")
     from matl.training.fit import train
 
     metrics = train(cfg)

@@ -41,5 +41,5 @@ def test_channel_input_norm_cancels_gain_bias_and_white_balance() -> None:
     torch.nn.init.normal_(reg.fc2.weight, std=0.1)
     assert torch.allclose(reg(camera), reg(x), atol=1e-3)
     assert isinstance(input_normalization("none"), torch.nn.Identity)
-    with pytest.raises(ValueError, match="input_norm='batch'.*none, channel"):
+    with pytest.raises(ValueError, match=r"input_norm='batch'.*none, channel"):
         FeatureNet(input_norm="batch")

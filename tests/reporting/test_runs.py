@@ -13,25 +13,26 @@ from tests.reporting.fake_runs import fake_run, metrics_for
 
 
 def test_rows_are_read_from_the_config_not_the_experiment_name(tmp_path: Path) -> None:
-    """experiment=table1_f N=2 is a Fig. 4 point; a run with the paper's recipe (augment=none) and row (g)'s
-    settings is row (g)."""
+    """experiment=table1_f N=2 is a Fig. 4 point; a run with the paper's recipe (model=matl augment=none)
+    and row (g)'s settings is row (g)."""
     a = load_run(fake_run(tmp_path / "a", ["experiment=table1_f", "N=2"], metrics_for(0.5, 1.0, 0)))
     assert a.table1 is None and a.fig4 is not None and a.fig4[1] == 2
-    g = load_run(fake_run(tmp_path / "g", ["augment=none", "lam=0"], metrics_for(0.5, 1.0, 0)))
+    g = load_run(fake_run(tmp_path / "g", ["model=matl", "augment=none", "lam=0"], metrics_for(0.5, 1.0, 0)))
     assert g.table1 == "g" and g.paper_column == "ARC"
-    j = load_run(fake_run(tmp_path / "j", ["augment=none", "loss=nce", "data.batch_size=40"], metrics_for(0.5, 1.0, 0)))
+    j = load_run(fake_run(tmp_path / "j", ["model=matl", "augment=none", "loss=nce", "data.batch_size=40"],
+                          metrics_for(0.5, 1.0, 0)))
     assert j.table1 == "j"
-    other = load_run(fake_run(tmp_path / "o", ["augment=none", "loss=nce", "N=6", "data.batch_size=40"],
+    other = load_run(fake_run(tmp_path / "o", ["model=matl", "augment=none", "loss=nce", "N=6", "data.batch_size=40"],
                               metrics_for(0.5, 1.0, 0)))
     assert other.table1 is None and other.fig4 is None
-    ycb_all = load_run(fake_run(tmp_path / "y", ["augment=none", "data=synthetic_ycb", "data.source.subset=all"],
-                                metrics_for(0.5, 1.0, 0)))
+    ycb_all = load_run(fake_run(tmp_path / "y", ["model=matl", "augment=none", "data=synthetic_ycb",
+                                                 "data.source.subset=all"], metrics_for(0.5, 1.0, 0)))
     assert ycb_all.dataset == "synthetic_ycb/all" and ycb_all.paper_column is None  # not the paper's YCB
     t2 = load_run(fake_run(tmp_path / "t2", ["experiment=table2_b"], metrics_for(0.5, 1.0, 0)))
     assert (t2.table1, t2.table2, t2.fig4, t2.dataset) == (None, "b", None, "synthetic_ycb_table2/planar")
     # two seeds of one config share a fingerprint; another lam does not
-    s1 = load_run(fake_run(tmp_path / "s1", ["augment=none", "seed=1"], metrics_for(0.5, 1.0, 1)))
-    s0 = load_run(fake_run(tmp_path / "s0", ["augment=none", "seed=0"], metrics_for(0.5, 1.0, 0)))
+    s1 = load_run(fake_run(tmp_path / "s1", ["model=matl", "augment=none", "seed=1"], metrics_for(0.5, 1.0, 1)))
+    s0 = load_run(fake_run(tmp_path / "s0", ["model=matl", "augment=none", "seed=0"], metrics_for(0.5, 1.0, 0)))
     assert s0.fingerprint == s1.fingerprint != g.fingerprint
 
 
@@ -65,7 +66,8 @@ def test_a_missing_folder_is_a_user_error(tmp_path: Path) -> None:
 
 
 def test_runs_beyond_the_papers_recipe_are_no_paper_row(tmp_path) -> None:
-    """A run with camera-like positives is not row (f); the default (augment=none) is."""
+    """A run with camera-like positives, or the default (model=matl_camera, input_norm=channel), is not row
+    (f); experiment=table1_f is."""
     from matl.reporting.configs import dataset_name
     from matl.reporting.rows import classify_training, describe
     from tests.conftest import compose_config
@@ -73,5 +75,8 @@ def test_runs_beyond_the_papers_recipe_are_no_paper_row(tmp_path) -> None:
     camera = compose_config("train", ["augment=camera"], tmp_path)
     assert classify_training(camera, dataset_name(camera.data)) == (None, None, False)
     assert "augment=camera" in describe(camera, "train", {})
-    paper_f = compose_config("train", [], tmp_path)
+    default = compose_config("train", [], tmp_path)
+    assert classify_training(default, dataset_name(default.data)) == (None, None, False)
+    assert "input_norm=channel" in describe(default, "train", {})
+    paper_f = compose_config("train", ["experiment=table1_f"], tmp_path)
     assert classify_training(paper_f, dataset_name(paper_f.data))[0] == "f"
