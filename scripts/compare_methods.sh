@@ -5,7 +5,7 @@
 #   scripts/compare_methods.sh OUT RUN_N4 [RUN_N1 RUN_TL RUN_STN ...]
 #
 # RUN_*: matl.train run folders trained on one dataset with one split seed, for example
-#   python -m matl.train                          # (f) MATL, N=4 (the default)
+#   python -m matl.train experiment=table1_f      # (f) MATL, N=4
 #   python -m matl.train experiment=table1_a      # (a) single anchor, N=1
 #   python -m matl.train experiment=table1_b      # (b) TL, no STN
 #   python -m matl.train experiment=table1_c      # (c) STN classifier
