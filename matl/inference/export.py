@@ -365,6 +365,11 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     stn = getattr(model, "stn", None)
     meta = {"N": num_anchors, "checkpoint": str(cfg.ckpt), "checkpoint_sha256": sha,
             "fixed_anchors": "anchor k = canonical image rotated by k * 360 / N degrees about the centre"}
+    if getattr(model, "align", None) is not None:  # the stage needs the searched anchor: not part of these graphs
+        meta["alignment_stage"] = ("not exported: query_H_anchor is s()'s pose, before the checkpoint's alignment "
+                                   "stage (matl.predict and matl.Recognizer run it)")
+        log.warning("export: the checkpoint's alignment stage is not in the exported files; their query_H_anchor "
+                    "is s()'s pose before it")
     info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta,
                             num_anchors=num_anchors)
     log.info("export: %s", json.dumps(info))

@@ -28,6 +28,19 @@ def test_the_shipped_model_is_small_and_loads_offline() -> None:
     assert "optimizer_states" not in ckpt
     rec = Recognizer.pretrained()
     assert rec.image_size == ckpt["matl_image_size"] == 100 and rec.num_anchors == ckpt["matl_num_anchors"]
+    # the shipped recipe (experiment=pretrained): input normalisation and the alignment stage
+    model = ckpt["matl_config"]["model"]
+    assert model["feature_net"]["input_norm"] == model["stn"]["regressor"]["input_norm"] == "channel"
+    assert rec.model.align is not None and any(k.startswith("align.") for k in ckpt["state_dict"])
+
+
+@needs_model
+def test_exporting_the_shipped_model_says_its_stage_is_not_exported(tmp_path: Path) -> None:
+    from matl.inference.export import export
+
+    info = export(compose_config("export", [f"ckpt={SHIPPED}", f"out={tmp_path / 'out'}"], tmp_path / "run"))
+    assert "not exported" in info["alignment_stage"]
+    assert json.loads((tmp_path / "out" / "export.json").read_text())["alignment_stage"] == info["alignment_stage"]
 
 
 @needs_model
