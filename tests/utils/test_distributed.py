@@ -25,6 +25,9 @@ from matl.utils.instantiate import build
 
 ROOT = Path(__file__).resolve().parents[2]
 TOLERANCE = 1e-9
+# float32 kernels may round a query's pose differently in another batch composition (the shards' batches
+# differ from one process's); a query counted twice or dropped moves a mean over 47 queries by far more
+RELATIVE = 1e-7
 
 
 @pytest.mark.parametrize("n,world", [(47, 2), (48, 2), (10, 3), (2, 3)])
@@ -77,6 +80,6 @@ def test_ddp_cpu_test_metrics_equal_single_process(tmp_path: Path, cache_dir: Pa
         if ddp[name] is None:
             assert math.isnan(single[name]), name
         else:
-            assert ddp[name] == pytest.approx(single[name], abs=TOLERANCE), name
+            assert ddp[name] == pytest.approx(single[name], rel=RELATIVE, abs=TOLERANCE), name
     # rec_acc over 47 queries is a multiple of 1/47: no query was counted twice or dropped
     assert round(ddp["rec_acc"] * 47) == pytest.approx(ddp["rec_acc"] * 47, abs=1e-9)
