@@ -21,9 +21,9 @@ class ChannelStandardize(nn.Module):
         self.eps = float(eps)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        mean = images.mean(dim=(-2, -1), keepdim=True)
-        var = (images - mean).square().mean(dim=(-2, -1), keepdim=True)
-        return (images - mean) * torch.rsqrt(var + self.eps ** 2)
+        centred = images - images.mean(dim=(-2, -1), keepdim=True)
+        var = centred.square().mean(dim=(-2, -1), keepdim=True)
+        return centred * torch.rsqrt(var + self.eps ** 2)
 
 
 #: values of the networks' ``input_norm`` option

@@ -176,8 +176,7 @@ class MATLModule(PoseEvaluationModule):
 
     def on_train_epoch_end(self) -> None:
         if not self.automatic_optimization:  # Lightning steps no scheduler under manual optimisation
-            schedulers = self.lr_schedulers()
-            for scheduler in schedulers if isinstance(schedulers, list) else [schedulers] if schedulers else []:
+            for scheduler in self.lr_schedulers() or []:  # None, or one per optimiser (configure_optimizers)
                 scheduler.step()
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:

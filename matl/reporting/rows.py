@@ -60,9 +60,10 @@ def beyond_paper(cfg: DictConfig) -> list[str]:
         found.append("align")
     if select(cfg, "model.appearance_mask", "none") not in (None, "none"):
         found.append(f"appearance_mask={select(cfg, 'model.appearance_mask')}")
-    norms = {select(cfg, "model.feature_net.input_norm", "none"), select(cfg, "model.stn.regressor.input_norm", "none")}
-    if norms - {None, "none"}:
-        found.append("input_norm=" + "/".join(sorted(str(n) for n in norms - {None, "none"})))
+    norms = sorted({str(select(cfg, key, "none")) for key in ("model.feature_net.input_norm",
+                                                               "model.stn.regressor.input_norm")} - {"None", "none"})
+    if norms:
+        found.append("input_norm=" + "/".join(norms))
     return found
 
 

@@ -83,18 +83,26 @@ def test_mask_shapes_are_checked() -> None:
         appearance_distance(warped, warped, 1, torch.ones(2, 1, 4, 4))
 
 
+def masked_model_and_anchor(S: int, levels: int, box: tuple[int, int, int, int], seed: int
+                            ) -> tuple[MATLModule, torch.Tensor, torch.Tensor, torch.Generator]:
+    """A symmetric, foreground-masked MATL model at ``S`` px, an anchor with a random print on the
+    ``(y0, y1, x0, x1)`` box of a black image, its mask, and the generator that drew the print (for more draws)."""
+    torch.manual_seed(0)
+    stn = SpatialTransformer(HomographyRegressor(image_size=S), image_size=S)
+    model = MATLModule(FeatureNet(), stn, TripletLoss(), image_size=S, appearance="symmetric",
+                       appearance_levels=levels, appearance_mask="foreground")
+    g = torch.Generator().manual_seed(seed)
+    y0, y1, x0, x1 = box
+    anchor = torch.zeros(1, 3, S, S)
+    anchor[:, :, y0:y1, x0:x1] = torch.rand(1, 3, y1 - y0, x1 - x0, generator=g)
+    return model, anchor, (anchor.amax(dim=1, keepdim=True) > 0).float(), g
+
+
 def test_backward_term_uses_the_anchors_mask_warped_into_the_positive() -> None:
     """``appearance=symmetric`` + masks: the backward term compares the anchor warped into the positive's frame
     with the positive over the anchor's foreground warped the same way: the positive's background is free."""
     S = 16
-    torch.manual_seed(0)
-    stn = SpatialTransformer(HomographyRegressor(image_size=S), image_size=S)
-    model = MATLModule(FeatureNet(), stn, TripletLoss(), image_size=S, appearance="symmetric",
-                       appearance_levels=2, appearance_mask="foreground")
-    g = torch.Generator().manual_seed(2)
-    anchor = torch.zeros(1, 3, S, S)
-    anchor[:, :, 4:12, 5:11] = torch.rand(1, 3, 8, 6, generator=g)
-    mask = (anchor.amax(dim=1, keepdim=True) > 0).float()
+    model, anchor, mask, g = masked_model_and_anchor(S, 2, (4, 12, 5, 11), seed=2)
     H = torch.tensor([[[1.0, 0.0, 2.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]])  # anchor -> positive: a shift
     positive = warp_image(anchor, H)
     mask_in_positive = warp_image(mask, H)
@@ -129,14 +137,7 @@ def test_backward_term_gradient_stays_bounded_as_the_warped_mask_shrinks() -> No
     0 and the step blew up (NaN at lam 10). Now the value shrinks with the footprint and the gradient
     with respect to the scale stays within that of an unshrunk pose."""
     S = 32
-    torch.manual_seed(0)
-    stn = SpatialTransformer(HomographyRegressor(image_size=S), image_size=S)
-    model = MATLModule(FeatureNet(), stn, TripletLoss(), image_size=S, appearance="symmetric",
-                       appearance_levels=3, appearance_mask="foreground")
-    g = torch.Generator().manual_seed(3)
-    anchor = torch.zeros(1, 3, S, S)
-    anchor[:, :, 8:24, 6:26] = torch.rand(1, 3, 16, 20, generator=g)
-    mask = (anchor.amax(dim=1, keepdim=True) > 0).float()
+    model, anchor, mask, g = masked_model_and_anchor(S, 3, (8, 24, 6, 26), seed=3)
     positive = torch.rand(1, 3, S, S, generator=g)
     centre = (S - 1) / 2
 
