@@ -13,7 +13,7 @@ from matl.evaluation.speed import REQUIRED_KEYS, run_bench
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 
-QUICK = ["bench.quick=true", "data.image_size=32", "data.train_triplets=64", "data.val_queries=8",
+QUICK = ["bench.quick=true", "ckpt=null", "data.image_size=32", "data.train_triplets=64", "data.val_queries=8",
          "data.test_queries=16", "data.batch_size=16"]
 
 

@@ -185,13 +185,21 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     query_ms.update(int8.pop("query_ms"))
     onnx = measure_onnx(model, gallery, queries, warmup, counts, device)  # with onnxruntime installed
     query_ms.update(onnx.pop("query_ms"))
+    breakdown: dict[str, Any] = {}
     if options.refine:
-        refined = RefinedRecognizer(recognizer, instantiate_node(cfg.refiner, "refiner"))  # per-anchor data once
+        refiner = instantiate_node(cfg.refiner, "refiner")
+        start = time.perf_counter()
+        refined = RefinedRecognizer(recognizer, refiner)  # the per-anchor data of refiner=fast: once, at enrolment
+        notes["refine_templates_s"] = f"{time.perf_counter() - start:.3f}"
+        if getattr(refined, "templates", None) is not None and hasattr(refined.templates, "nbytes"):
+            notes["refine_templates_mb"] = f"{refined.templates.nbytes / 1e6:.1f}"
         query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
-        if hasattr(refined.refiner, "anchor_templates"):  # refiner=fast: the per-anchor data is enrolment work
-            start = time.perf_counter()
-            refined.refiner.anchor_templates(gallery.images)
-            notes["refine_templates_s"] = f"{time.perf_counter() - start:.3f}"
+        breakdown = measure_breakdown(model, recognizer, refined, queries, warmup, threads, device)
+        if int8.get("recognizer") is not None:  # quantize=int8: the int8 query path, refined the same way
+            refined_int8 = RefinedRecognizer(int8["recognizer"], refiner, templates=refined.templates)
+            query_ms["matl_int8_refine"] = median_query_ms(_synced(refined_int8, device), queries, warmup,
+                                                           int8["matl_int8_threads"])
+    int8.pop("recognizer", None)
     if options.faiss and hasattr(recognizer, "use_search"):
         faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
         try:
@@ -229,12 +237,77 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "matl_threads": threads, "sift_threads": sift_threads,
         "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
         "matl_path": _query_path(recognizer, queries[:1]),
+        "matl_align": "the alignment stage runs in query_ms.matl (after the search)" if getattr(
+            recognizer, "align", None) is not None else None,
+        "breakdown": breakdown,
         **int8,
         **onnx,
     }
     if notes:
         timing["notes"] = notes
     return {"query_ms": query_ms, "query_timing": timing}
+
+
+def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.Tensor, warmup: int,
+                      threads: int, device: torch.device) -> dict[str, Any]:
+    """Where a refined MATL query's milliseconds go: the median over the same single queries of each part,
+    timed alone at MATL's thread count (so the parts need not add up exactly to ``query_ms.matl_refine``).
+
+    ``networks_ms``: ``c(s(q))`` by the recognizer's own path (compiled graph when it applies);
+    ``stn_ms`` / ``features_ms``: ``s()`` and ``c()`` alone, eager ``infer``; ``search_ms``: the gallery search
+    of the query's embedding; ``align_ms``: the alignment stage against the searched anchor (models with
+    ``model.align``; in ``query_ms.matl``, and in ``matl_refine`` unless the refiner skips it:
+    ``refiner.start=stn``); ``refine_ms``: the refinement alone from the pose it starts from, and
+    ``refine_level_ms`` its median per pyramid level, finest first (``refiner=fast``).
+    """
+    from matl.utils.timing import torch_threads
+
+    parts: dict[str, list[float]] = {}
+    levels: list[list[float]] = []
+
+    def timed(name: str, fn: Callable[[], Any], keep: bool) -> Any:
+        _sync(device)
+        start = time.perf_counter()
+        out = fn()
+        _sync(device)
+        if keep:
+            parts.setdefault(name, []).append(1e3 * (time.perf_counter() - start))
+        return out
+
+    g = recognizer.gallery
+    stn, feature_net = getattr(model, "stn", None), getattr(model, "feature_net", None)
+    align = getattr(recognizer, "align", None)
+    with torch.no_grad(), torch_threads(threads):
+        for i in range(len(queries)):
+            q, keep = queries[i:i + 1], i >= warmup
+            features, query_H_anchor, _, warped = timed("networks_ms", lambda q=q: recognizer.embed_queries(q), keep)
+            if stn is not None and hasattr(stn, "infer"):
+                out = timed("stn_ms", lambda q=q: stn.infer(q), keep)
+                if feature_net is not None and hasattr(feature_net, "infer"):
+                    timed("features_ms", lambda w=out.warped: feature_net.infer(w), keep)
+            index, _ = timed("search_ms", lambda f=features: recognizer.search.search(f), keep)
+            if align is not None and query_H_anchor is not None:
+                aligned = timed("align_ms", lambda q=q, a=g.images[index], h=query_H_anchor, w=warped:
+                                align.infer(q, a, h, w), keep).query_H_anchor
+                if not refined.skips_align:  # refiner.start=align: the refinement starts from the stage's pose
+                    query_H_anchor = aligned
+            if query_H_anchor is None:
+                continue
+            start = query_H_anchor.double()
+            if refined.templates is not None:
+                timed("refine_ms", lambda q=q, i=index, h=start: refined.refiner(q, i, h, refined.templates), keep)
+                if keep and getattr(refined.refiner, "last_level_ms", None):
+                    levels.append(list(refined.refiner.last_level_ms))
+            else:
+                timed("refine_ms", lambda q=q, i=index, h=start: refined.refiner(q, g.images[i], h), keep)
+    result: dict[str, Any] = {k: statistics.median(v) for k, v in parts.items()}
+    if levels:
+        result["refine_level_ms"] = [statistics.median(ms[k] for ms in levels if len(ms) > k)
+                                     for k in range(max(len(ms) for ms in levels))]
+    result["refiner"] = type(refined.refiner).__name__
+    result["refine_skips_align"] = bool(refined.skips_align)
+    result["threads"] = threads
+    return result
 
 
 def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Tensor, warmup: int,
@@ -254,7 +327,8 @@ def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Te
         return {"query_ms": {"matl_int8": None}, "matl_int8_fallback": applied["quantize_fallback"]}
     by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
     threads = int(min(by_threads, key=lambda n: by_threads[n]))
-    return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "matl_int8_ms_by_threads": by_threads,
+    return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "recognizer": recognizer,
+            "matl_int8_ms_by_threads": by_threads,
             "matl_int8_threads": threads, "matl_int8_build_s": build_s,
             "matl_int8_path": "int8 (FX static quantisation, oneDNN; TorchScript, frozen) + float warps, search, pose"}
 
@@ -444,12 +518,19 @@ def measure_render(cfg: DictConfig, options: DictConfig) -> tuple[float | None, 
 
 # -------------------------------------------------------------------------------------------- main
 def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
-    """The checkpoint's model when ``ckpt=`` is set (and the data's size and N set to its own)."""
+    """The checkpoint's model (and the data's size and N set to its own): ``ckpt=pretrained`` (the default)
+    the shipped model, ``ckpt=<path>`` a matl.train checkpoint; ``ckpt=null`` None (the default config's
+    model, untrained)."""
     ckpt_path = cfg.get("ckpt")
     if not ckpt_path:
         return None, "untrained: the default config's model, randomly initialised (speed does not depend on weights)"
     from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 
+    pretrained = str(ckpt_path) == "pretrained"
+    if pretrained:
+        from matl.inference.api import PRETRAINED
+
+        ckpt_path = PRETRAINED
     ckpt = load_checkpoint(ckpt_path)
     size, num_anchors = checkpoint_info(ckpt, ckpt_path)
     config = ckpt.get("matl_config")
@@ -458,7 +539,8 @@ def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
     with open_dict(cfg):
         cfg.data.image_size = size  # the gallery and queries must be the checkpoint's size
         cfg.N = num_anchors
-    return build_model(config["model"], ckpt, ckpt_path), f"checkpoint {ckpt_path}"
+    what = f"pretrained: the shipped model {ckpt_path}" if pretrained else f"checkpoint {ckpt_path}"
+    return build_model(config["model"], ckpt, ckpt_path), what
 
 
 def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]:
@@ -494,6 +576,9 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     results["refine_added_ms"] = q["matl_refine"] - q["matl"] if q.get("matl_refine") is not None else None
     results["speedup_vs_sift_refine"] = (q["sift_ransac"] / q["matl_refine"] if q.get("sift_ransac")
                                          and q.get("matl_refine") else None)
+    if "matl_int8_refine" in q:  # quantize=int8 with bench.refine
+        results["speedup_int8_vs_sift_refine"] = (q["sift_ransac"] / q["matl_int8_refine"] if q.get("sift_ransac")
+                                                  and q.get("matl_int8_refine") else None)
 
     log.info("bench: gallery scaling")
     queries = _query_images(datamodule, int(options.query_warmup) + int(options.queries), device)
@@ -562,6 +647,16 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
         table.add_row("query_ms.matl_int8", _fmt(q.get("matl_int8")),
                       t.get("matl_int8_fallback") or f"quantize=int8; {t.get('matl_int8_threads')} thread(s)")
         table.add_row("speedup_int8_vs_sift", _fmt(results.get("speedup_int8_vs_sift"), 1), "sift_ransac / matl_int8")
+    if "matl_int8_refine" in q:
+        table.add_row("query_ms.matl_int8_refine", _fmt(q.get("matl_int8_refine")), "int8 query path + refine=true")
+        table.add_row("speedup_int8_vs_sift_refine", _fmt(results.get("speedup_int8_vs_sift_refine"), 1),
+                      "sift_ransac / matl_int8_refine")
+    parts = t.get("breakdown") or {}
+    if parts:
+        names = [k for k in ("networks_ms", "stn_ms", "features_ms", "search_ms", "align_ms", "refine_ms") if k in parts]
+        levels = " / ".join(_fmt(v, 3) for v in parts.get("refine_level_ms", []))
+        table.add_row("breakdown (ms)", "", ", ".join(f"{k[:-3]} {_fmt(parts[k], 3)}" for k in names)
+                      + (f"; refine per level (finest first) {levels}" if levels else ""))
     table.add_row("render_images_per_s", _fmt(results["render_images_per_s"], 1),
                   results["render"].get("skipped", f"{results['render'].get('objects')} objects, canonical"))
     console.print(table)

@@ -154,7 +154,7 @@ def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> Photomet
     if refine is None or refine is False:
         return None
     if refine is True:
-        return PhotometricRefiner()
+        return FastRefiner()  # conf/refiner/fast.yaml's defaults
     if isinstance(refine, (PhotometricRefiner, FastRefiner)):
         return refine
     raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
@@ -211,10 +211,10 @@ class Recognizer:
         model_id: identifies the weights (the checkpoint's sha256); a saved gallery of another model
             is refused.
         device: ``cpu`` or ``cuda``.
-        refine: photometric refinement of every pose (True: the default refiner; or a
-            :class:`~matl.inference.refine.PhotometricRefiner`, or the inverse-compositional
-            :class:`~matl.inference.fast_refine.FastRefiner`, whose per-anchor data is computed
-            once each time the gallery changes).
+        refine: photometric refinement of every pose (True: the default refiner,
+            :class:`~matl.inference.fast_refine.FastRefiner` with ``conf/refiner/fast.yaml``'s settings, whose
+            per-anchor data is computed once each time the gallery changes; or a configured
+            ``FastRefiner`` or :class:`~matl.inference.refine.PhotometricRefiner`).
         quantize: ``none`` or ``int8`` (int8 convolutions for the query networks, float fallback).
         search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every

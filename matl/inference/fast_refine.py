@@ -1,342 +1,444 @@
-"""Fast photometric pose refinement (``refiner=fast``, the default): inverse-compositional Gauss-Newton.
+"""Fast photometric pose refinement (``refiner=fast``, the default of ``refine=true``).
 
-The query is aligned to the anchor the recognizer selected, as in
-:class:`~matl.inference.refine.PhotometricRefiner`, but built so that a query costs a few warps:
+The query is aligned to the anchor the recognizer selected by minimising a robust photometric
+loss, as :class:`~matl.inference.refine.PhotometricRefiner` does, but built so that one query costs a
+few hundred microseconds on one CPU core:
 
-* **Inverse compositional** (Baker and Matthews): the linearisation is taken about the *anchor*, so
-  its gradients, the steepest-descent images ``sd = grad(T) dW/dp`` and the Gauss-Newton Hessian
-  ``sum sd sd^T`` do not depend on the query. They are computed once per gallery anchor
-  (:meth:`FastRefiner.prepare`, when the refined recognizer is built over a gallery: at enrolment)
-  and gathered per query. The update is ``query_H_anchor <- query_H_anchor @ inv(I + D(dp))`` in
-  normalised coordinates (``align_corners=True``, so one matrix serves every pyramid level).
-* **Objective over the anchor's foreground only**: the pixels of the anchor that are non-zero
-  (backgrounds are 0 by convention), eroded by ``erode`` pixels so that the blurred outline, which
-  mixes in whatever lies behind the object in the query, does not count. Whatever the query shows
-  outside the object costs nothing.
-* **Lighting**: the steepest-descent images are projected orthogonal to the appearance basis
-  ``{1, T}`` over the anchor's pixels ("project out", Baker and Matthews), so the Gauss-Newton step
-  sees geometry only. The template ``T`` is normalised to zero mean and unit variance over its pixels; the
-  warped query ``Iw`` is mapped into the template's photometric frame by the least-squares gain and
-  bias over the same pixels (closed form, since ``T`` is normalised): ``r = (Iw - b) / a - T``. A
-  gain / bias change of the query costs nothing; a query whose correlation coefficient with the
-  anchor is at most ``min_correlation`` has an infinite loss.
-* **Robust loss** ``mean rho(r)`` (``l2``, ``huber``, ``cauchy`` or ``geman_mcclure``, scale ``delta``
-  in units of the template's std), minimised by iteratively re-weighted Gauss-Newton: the weighted
-  Hessian ``sd^T diag(w) sd`` is one small product over the selected pixels (the precomputed
-  unweighted one for ``l2``).
-* **Pixel selection**: per level at most ``max_pixels`` foreground pixels, those of largest anchor
-  gradient (they carry the alignment); all of them on small levels.
-* **Coarse to fine** over ``levels`` Gaussian pyramid levels (a wider basin); at most ``iterations``
-  per level, a query stops once its update moves no anchor corner by more than ``tolerance`` px of
-  that level; the level ends when every query has stopped. Each level keeps, per query, the lowest
-  loss pose it evaluated.
-* **Never worse than its start**: at full resolution the objective of the final pose is compared
-  with the start's; a query whose loss did not decrease, or whose matrix is non-finite or
-  ill-conditioned, keeps its start.
+* **Inverse compositional Gauss-Newton** (Baker and Matthews): the linearisation is taken about the
+  *anchor*, so its image gradients, the steepest-descent images ``sd = grad(A) dW/dp`` and the
+  Gauss-Newton Hessian ``sd^T sd`` do not depend on the query. They are computed once per gallery
+  anchor and pyramid level (:meth:`FastRefiner.anchor_templates`: when the refined recognizer is built
+  over a gallery, i.e. at enrolment) and looked up per query. The update is
+  ``query_H_anchor <- query_H_anchor @ inv(I + D(dp))`` in normalised coordinates
+  (``align_corners=True`` of the full-resolution image, so one matrix serves every level).
+* **Objective** (``region=frame``, the default: the photometric refiner's own): ``mean rho(r)`` over
+  the anchor frame with ``r = (Iq(H x) - gain * A(x) - bias * F(x)) / scale``, ``A`` the anchor's
+  luminance, ``F`` its foreground (non-zero pixels; backgrounds are 0 by convention), ``gain`` and
+  ``bias`` the least-squares fit over ``F`` at the current pose (a change of the query's exposure or
+  black level costs nothing), ``scale`` the std of the query's foreground (``delta`` is unitless). The
+  background stays in the loss (0 on both sides at the right pose): it keeps the object's outline in
+  the objective. ``region=foreground``: only the anchor's foreground eroded by ``erode`` px counts
+  (whatever the query shows around the object costs nothing; for queries with a background).
+  ``rho`` is ``l2``, ``huber`` or ``cauchy``, minimised by iteratively re-weighted Gauss-Newton
+  (the precomputed Hessian whenever every weight is 1). Since ``T = gain * A + bias * F``, the step is
+  ``dp = (sd^T W sd)^-1 sd^T W r / gain`` (the outline term ``bias * grad F`` is left out of ``sd``).
+* **Levenberg-Marquardt safeguard**: a step is kept only if the loss at the level drops; otherwise the
+  level goes back to its best pose with the damping raised tenfold (``damping``, relative to the
+  Hessian's diagonal), so the loss of each level never increases.
+* **Coarse to fine** over ``levels`` pyramid levels (``cv2.pyrDown``), at most ``iterations`` per
+  level (``iterations`` is one number, or one per level from the finest), a level ending once an
+  accepted step moved no image corner by more than ``tolerance`` px of that level.
+* **Where it starts**: ``start=stn`` (default) refines ``s()``'s pose and a refined recognizer skips
+  the model's learned alignment stage (``model.align``), whose job this does at a fraction of its cost;
+  ``start=align`` refines the stage's pose.
+* **Never worse than its start**: at full resolution the objective of the result is compared with the
+  start's; a query whose loss did not decrease, or whose matrix is non-finite or ill-conditioned,
+  keeps its start.
 
-Batched over queries (each with its own anchor); every step is a batched tensor operation.
+Batch-1 latency is what matters (one camera crop at a time), so a query runs in NumPy and OpenCV
+(``cv2.warpPerspective`` of a small grayscale image costs microseconds, a torch op ~10 us of overhead);
+a batch is a loop over its queries. ``threads`` sets OpenCV's threads during the refinement.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
+import cv2
+import numpy as np
 import torch
-import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d, spatial_gradient
-from kornia.geometry.transform import pyrdown
 
-from matl.geometry import degenerate_homographies, normalised_to_pixel, pixel_to_normalised
 from matl.inference.refine import RefineResult
 from matl.utils.errors import MatlError
 
-__all__ = ["FAST_LOSSES", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
+__all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
 
-FAST_LOSSES = ("l2", "huber", "cauchy", "geman_mcclure")
+FAST_LOSSES = ("l2", "huber", "cauchy")
+REGIONS = ("frame", "foreground")
+STARTS = ("stn", "align")
 _FOREGROUND = 1e-3  # an anchor pixel brighter than this in any channel is foreground (backgrounds are 0)
-_LUMA = (0.299, 0.587, 0.114)
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as PhotometricRefiner
+_WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+#: the normalised image corners, homogeneous ``(4, 3)``
+_CORNERS = np.array([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
 
 
 @dataclass
 class AnchorLevel:
-    """Precomputed data of one pyramid level for ``G`` anchors, ``n`` selected pixels each.
+    """What one anchor contributes at one pyramid level (``n`` pixels carry a gradient).
 
     Attributes:
-        points: ``(G, n, 3)`` float32 homogeneous normalised coordinates ``(u, v, 1)`` of the pixels.
-        template: ``(G, n)`` the normalised template (zero mean, unit variance over the pixels; 0 on padding).
-        weight: ``(G, n)`` 1 for a selected foreground pixel, 0 for padding.
-        count: ``(G,)`` number of selected pixels (at least 1).
-        sd: ``(G, n, 8)`` steepest-descent images ``d T(W(x; p)) / dp`` at ``p = 0`` (0 on padding).
-        hessian: ``(G, 8, 8)`` float64 ``sum sd sd^T``.
+        image: ``(h * w, 1)`` float32 luminance (rows of the ``(h, w)`` level), 0 off the foreground.
+        fg: ``(h * w, 1)`` float32 foreground indicator ``F`` (the gain / bias fit's support).
+        region: ``(h * w, 1)`` float32 0/1 pixels of the loss (``region=foreground``); None: all (``frame``).
         size: ``(h, w)`` of the level.
+        count: pixels of ``F``; ``mean`` ``A``'s mean over them, ``var`` ``sum_F (A - mean)^2``.
+        total: ``sum(region)``: the loss is a mean over these pixels.
+        index: ``(n,)`` int32 flat pixel indices where ``sd`` is non-zero (inside the region).
+        sdT: ``(8, n)`` float32 steepest-descent images ``d A(W(x; p)) / dp`` at ``p = 0`` (normalised ``p``),
+            transposed.
+        hessian: ``(8, 8)`` float64 ``sd^T sd``.
+        norm_H_pixel: ``(3, 3)`` this level's pixels -> full-resolution normalised coordinates.
+        pixel_H_norm: its inverse.
     """
 
-    points: torch.Tensor
-    template: torch.Tensor
-    weight: torch.Tensor
-    count: torch.Tensor
-    sd: torch.Tensor
-    hessian: torch.Tensor
+    image: np.ndarray
+    fg: np.ndarray
+    region: np.ndarray | None
     size: tuple[int, int]
+    count: float
+    mean: float
+    var: float
+    total: float
+    index: np.ndarray
+    sdT: np.ndarray
+    hessian: np.ndarray
+    norm_H_pixel: np.ndarray
+    pixel_H_norm: np.ndarray
 
-    def take(self, index: torch.Tensor) -> AnchorLevel:
-        """The rows of ``index`` ``(B,)`` (one anchor per query)."""
-        return AnchorLevel(self.points[index], self.template[index], self.weight[index], self.count[index],
-                           self.sd[index], self.hessian[index], self.size)
+    @property
+    def inv_var(self) -> float:
+        return 1.0 / max(self.var, 1e-12)
+
+    @property
+    def inv_count(self) -> float:
+        return 1.0 / max(self.count, 1.0)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (self.image, self.fg, self.index, self.sdT, self.hessian)
+        return sum(a.nbytes for a in arrays) + (self.region.nbytes if self.region is not None else 0)
 
 
 @dataclass
 class AnchorTemplates:
-    """What :class:`FastRefiner` precomputes per anchor: one :class:`AnchorLevel` per pyramid level, finest first.
+    """:class:`FastRefiner`'s data of a gallery: per anchor, one :class:`AnchorLevel` per level, finest first.
 
     Attributes:
-        levels: finest first.
+        anchors: one list of levels per anchor.
         image_size: ``(H, W)`` of the anchors.
+        seconds: time taken to compute them.
     """
 
-    levels: list[AnchorLevel]
+    anchors: list[list[AnchorLevel]]
     image_size: tuple[int, int]
+    seconds: float = field(default=0.0)
 
     def __len__(self) -> int:
-        return int(self.levels[0].points.shape[0])
+        return len(self.anchors)
 
-    def take(self, index: torch.Tensor) -> AnchorTemplates:
-        return AnchorTemplates([level.take(index) for level in self.levels], self.image_size)
+    @property
+    def nbytes(self) -> int:
+        """Memory held, bytes."""
+        return sum(level.nbytes for anchor in self.anchors for level in anchor)
 
 
-def _corner_jacobian(device: torch.device) -> torch.Tensor:
-    """``(8, 8)``: ``dp @ J`` is the first-order motion ``(x0, y0, x1, y1, ...)`` of the 4 normalised
-    corners under ``I + D(dp)``."""
+_EYE8 = np.eye(8)
+
+
+def _inverse_update(p: np.ndarray) -> np.ndarray:
+    """``inv(I + D(p))`` ``(3, 3)`` of ``p`` ``(8,)`` (the adjugate; the scale is divided out later)."""
+    a, b, c, d, e, f, g, h = p
+    a, e = a + 1.0, e + 1.0
+    return np.array([[e - f * h, c * h - b, b * f - c * e],
+                     [f * g - d, a - c * g, c * d - a * f],
+                     [d * h - e * g, b * g - a * h, a * e - b * d]])
+
+
+def _corner_jacobian() -> np.ndarray:
+    """``(8, 8)``: ``p @ J`` is the first-order motion ``(x0, y0, x1, y1, ...)`` of the 4 normalised corners
+    under ``I + D(p)``."""
     rows = []
-    for x, y in ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)):
+    for x, y in _CORNERS[:, :2]:
         rows.append([x, y, 1.0, 0.0, 0.0, 0.0, -x * x, -x * y])
         rows.append([0.0, 0.0, 0.0, x, y, 1.0, -x * y, -y * y])
-    return torch.tensor(rows, device=device).T.contiguous()
+    return np.array(rows).T
 
 
-def _update_matrix(p: torch.Tensor) -> torch.Tensor:
-    """``I + D(p)``: ``(B, 8) -> (B, 3, 3)``."""
-    full = torch.cat([p, torch.zeros_like(p[:, :1])], dim=1).view(-1, 3, 3)
-    return full + torch.eye(3, dtype=p.dtype, device=p.device)
+def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
+    """Finest first; level ``l``'s pixel ``i`` is centred on the full image's pixel ``2^l i`` (``cv2.pyrDown``)."""
+    out = [image]
+    while len(out) < levels and min(out[-1].shape) // 2 >= min_size:
+        out.append(cv2.pyrDown(out[-1]))
+    return out
+
+
+def _luminance(images: torch.Tensor) -> np.ndarray:
+    """``(B, 3, H, W)`` (or ``(B, 1, H, W)``) -> ``(B, H, W)`` float32 NumPy luminance."""
+    array = images.detach().float().cpu().numpy()
+    if array.shape[1] == 1:
+        return np.ascontiguousarray(array[:, 0])
+    return np.ascontiguousarray(np.tensordot(_LUMA, array, axes=([0], [1])))
 
 
 class FastRefiner:
-    """Inverse-compositional refinement of ``query_H_anchor`` against precomputed anchors.
+    """Inverse-compositional refinement of ``query_H_anchor`` against precomputed anchors (batch-1 fast).
 
     Args:
-        iterations: most Gauss-Newton iterations per pyramid level.
+        iterations: most Gauss-Newton steps per pyramid level: one number for every level, or a list
+            per level from the finest (e.g. ``[2, 3, 4]``).
         levels: pyramid levels (1: full resolution only); the coarsest keeps at least ``min_size`` px per side.
-        loss: ``l2``, ``huber``, ``cauchy`` or ``geman_mcclure`` on the residuals.
-        delta: scale of the robust loss, in units of the template's std.
-        damping: Levenberg-Marquardt damping added to the Hessian's diagonal (relative to it).
+        region: ``frame`` (the whole anchor frame, background included: the outline counts) or
+            ``foreground`` (the anchor's foreground eroded by ``erode`` px only: a query's background costs nothing).
+        loss: ``l2``, ``huber`` or ``cauchy`` on the residuals.
+        delta: robust-loss scale, in units of the query foreground's std.
+        damping: initial Levenberg-Marquardt damping, relative to the Hessian's diagonal (raised tenfold
+            after a step that did not lower the loss, lowered tenfold after one that did).
         min_size: smallest pyramid level side, pixels.
-        max_pixels: most pixels per level (largest anchor gradient first); null: every foreground pixel.
-        erode: pixels by which the anchor's foreground is eroded at every level (0: the whole foreground).
-        min_correlation: a warped query whose correlation coefficient with the template is at most
-            this has an infinite loss (not the object, or not lit like one).
+        min_std: floor of the query foreground's std (a flat image is not amplified into noise).
+        erode: ``region=foreground`` only: pixels by which the foreground is eroded at every level.
         max_condition: a refined normalised matrix with a larger condition number is rejected.
-        tolerance: a query stops at a level once its update moves no corner by more than this many
+        tolerance: a level ends once an accepted step moved no image corner by more than this many
             pixels of that level.
-        threads: torch threads during the refinement (null: the caller's).
-        blur: std in pixels of a Gaussian applied to query and anchor alike before the pyramid (0: none):
-            evens out the resampling blur of a warped query against the sharp anchor.
+        threads: OpenCV threads during the refinement (null: leave OpenCV's).
+        blur: std in px of a Gaussian applied to query and anchor alike before the pyramid (0: none).
+        start: where a refined recognizer (:class:`~matl.inference.refine.RefinedRecognizer`) starts:
+            ``stn``, ``s()``'s pose, skipping a model's learned alignment stage (``model.align``: the
+            refinement does its job, and it costs more than the refinement at a batch of one), or
+            ``align``, the stage's pose.
     """
 
-    def __init__(self, iterations: int = 10, levels: int = 3, loss: str = "huber", delta: float = 1.0,
-                 damping: float = 1e-4, min_size: int = 8, max_pixels: int | None = None, erode: int = 1,
-                 min_correlation: float = 0.05, max_condition: float = 1e4, tolerance: float = 0.01,
-                 threads: int | None = None, blur: float = 0.0) -> None:
-        if int(iterations) < 0:
-            raise MatlError(f"refiner.iterations must be >= 0, got {iterations}")
+    def __init__(self, iterations: int | Sequence[int] = (2, 3, 4), levels: int = 3, region: str = "frame",
+                 loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
+                 min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.01,
+                 threads: int | None = 1, blur: float = 0.0, start: str = "stn") -> None:
+        per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
+            iterations, str) else [int(iterations)]
+        if not per_level or min(per_level) < 0:
+            raise MatlError(f"refiner.iterations must be an integer >= 0 or a list of them, got {iterations}")
         if int(levels) < 1:
             raise MatlError(f"refiner.levels must be >= 1, got {levels}")
+        if region not in REGIONS:
+            raise MatlError(f"refiner.region must be one of {', '.join(REGIONS)}, got {region!r}")
         if loss not in FAST_LOSSES:
             raise MatlError(f"refiner.loss must be one of {', '.join(FAST_LOSSES)}, got {loss!r}")
-        if float(delta) <= 0 or float(damping) < 0 or int(min_size) < 4:
-            raise MatlError(f"refiner.delta must be > 0, damping >= 0 and min_size >= 4; got delta={delta}, "
-                            f"damping={damping}, min_size={min_size}")
-        if max_pixels is not None and int(max_pixels) < 16:
-            raise MatlError(f"refiner.max_pixels must be null or >= 16, got {max_pixels}")
+        if float(delta) <= 0 or float(damping) < 0 or int(min_size) < 4 or float(min_std) <= 0:
+            raise MatlError(f"refiner.delta and min_std must be > 0, damping >= 0 and min_size >= 4; got delta={delta}, "
+                            f"min_std={min_std}, damping={damping}, min_size={min_size}")
         if int(erode) < 0 or float(tolerance) < 0 or (threads is not None and int(threads) < 1):
             raise MatlError(f"refiner.erode and tolerance must be >= 0 and threads null or >= 1; got erode={erode}, "
                             f"tolerance={tolerance}, threads={threads}")
-        self.iterations, self.levels, self.loss, self.delta = int(iterations), int(levels), loss, float(delta)
-        self.damping, self.min_size, self.erode = float(damping), int(min_size), int(erode)
-        self.max_pixels = None if max_pixels is None else int(max_pixels)
-        self.min_correlation, self.max_condition = float(min_correlation), float(max_condition)
-        self.tolerance = float(tolerance)
+        self.iterations = per_level[0] if len(per_level) == 1 else per_level
+        self.levels, self.region, self.loss, self.delta = int(levels), region, loss, float(delta)
+        self.damping, self.min_size, self.min_std = float(damping), int(min_size), float(min_std)
+        self.erode, self.max_condition, self.tolerance = int(erode), float(max_condition), float(tolerance)
         self.threads = None if threads is None else int(threads)
+        if float(blur) < 0:
+            raise MatlError(f"refiner.blur must be >= 0, got {blur}")
         self.blur = float(blur)
+        if start not in STARTS:
+            raise MatlError(f"refiner.start must be one of {', '.join(STARTS)}, got {start!r}")
+        self.start = start
         self._templates: AnchorTemplates | None = None  # set by prepare()
+        #: per-level time of the last single query, ms (``timing=True`` calls), finest first
+        self.last_level_ms: list[float] = []
+
+    def _iterations(self, level: int) -> int:
+        if isinstance(self.iterations, list):
+            return self.iterations[min(level, len(self.iterations) - 1)]
+        return self.iterations
 
     # ------------------------------------------------------------------------------ anchors
-    def _pyramid(self, images: torch.Tensor) -> list[torch.Tensor]:
-        """Finest first, ``(B, C, h_l, w_l)``; ``align_corners=True`` keeps normalised coordinates across levels."""
-        out = [images]
-        while len(out) < self.levels and min(out[-1].shape[-2:]) // 2 >= self.min_size:
-            out.append(pyrdown(out[-1], align_corners=True))
-        return out
+    def _norm_H_pixel(self, level: int, size: tuple[int, int]) -> np.ndarray:
+        """Level pixels -> normalised coordinates of the full image (``align_corners=True``)."""
+        H, W = size
+        f = float(2 ** level)
+        return np.array([[2.0 * f / (W - 1), 0.0, -1.0], [0.0, 2.0 * f / (H - 1), -1.0], [0.0, 0.0, 1.0]])
 
-    def _luminance(self, images: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, H, W)`` -> ``(B, 1, H, W)`` float32 (ITU-R BT.601), blurred by ``blur``; one channel is kept."""
-        images = images.float()
-        if images.shape[1] != 1:
-            images = (images * images.new_tensor(_LUMA).view(1, 3, 1, 1)).sum(1, keepdim=True)
-        if self.blur > 0:
-            k = 2 * math.ceil(2 * self.blur) + 1
-            images = gaussian_blur2d(images, (k, k), (self.blur, self.blur), border_type="constant")
-        return images
+    def _blurred(self, image: np.ndarray) -> np.ndarray:
+        """``image`` ``(H, W)`` under a Gaussian of std ``blur`` px (zeros outside), or itself (``blur=0``)."""
+        if self.blur <= 0:
+            return image
+        return cv2.GaussianBlur(image, (0, 0), self.blur, borderType=cv2.BORDER_CONSTANT)
+
+    def _anchor(self, gray: np.ndarray, fg: np.ndarray) -> list[AnchorLevel]:
+        size = gray.shape
+        gray = self._blurred(gray)
+        out = []
+        masks = _pyramid(fg, self.levels, self.min_size)
+        for level, image in enumerate(_pyramid(gray, self.levels, self.min_size)):
+            h, w = image.shape
+            mask = (masks[level] > _FOREGROUND).astype(np.float32)  # the blurred support at coarse levels
+            image = image * mask
+            if self.region == "frame":
+                region = None
+            else:
+                kernel = np.ones((2 * self.erode + 1, 2 * self.erode + 1), np.uint8)
+                region = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) if self.erode \
+                    else mask.copy()
+            padded = np.pad(image, 1, mode="edge")  # central differences, one-sided at the border
+            gx = (padded[1:-1, 2:] - padded[1:-1, :-2]) * 0.5
+            gy = (padded[2:, 1:-1] - padded[:-2, 1:-1]) * 0.5
+            norm_H_pixel = self._norm_H_pixel(level, size)
+            gx, gy = gx / norm_H_pixel[0, 0], gy / norm_H_pixel[1, 1]  # per normalised unit
+            inside = (gx != 0) | (gy != 0)
+            if region is not None:
+                inside &= region > 0
+            index = np.flatnonzero(inside).astype(np.int32)
+            x = (index % w) * norm_H_pixel[0, 0] - 1.0
+            y = (index // w) * norm_H_pixel[1, 1] - 1.0
+            gxs, gys = gx.ravel()[index], gy.ravel()[index]
+            radial = gxs * x + gys * y
+            sd = np.stack([gxs * x, gxs * y, gxs, gys * x, gys * y, gys, -radial * x, -radial * y])  # (8, n)
+            count = float(mask.sum())
+            mean = float(image.sum() / max(count, 1.0))
+            var = float(((image - mean) ** 2 * mask).sum())
+            out.append(AnchorLevel(
+                np.ascontiguousarray(image.reshape(-1, 1), dtype=np.float32), mask.reshape(-1, 1),
+                None if region is None else np.ascontiguousarray(region.reshape(-1, 1)), (int(h), int(w)), count,
+                mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
+                np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, np.linalg.inv(norm_H_pixel)))
+        return out
 
     @torch.no_grad()
-    def anchor_templates(self, anchors: torch.Tensor, chunk: int = 256) -> AnchorTemplates:
-        """Everything the refinement needs of ``anchors`` ``(G, 3, H, W)``, computed once per anchor.
-
-        Anchors are processed independently (chunks of ``chunk``), so the rows of a gallery's
-        templates equal those of each anchor computed alone.
-        """
+    def anchor_templates(self, anchors: torch.Tensor) -> AnchorTemplates:
+        """Everything the refinement needs of ``anchors`` ``(G, 3, H, W)``, computed once per anchor."""
         if anchors.ndim != 4:
-            raise ValueError(f"anchors must be (G, C, H, W), got {tuple(anchors.shape)}")
-        parts = [self._anchor_chunk(anchors[i:i + chunk]) for i in range(0, len(anchors), chunk)] or \
-            [self._anchor_chunk(anchors[:0])]
-        levels = [AnchorLevel(*(torch.cat([p[k].__dict__[f] for p in parts]) for f in
-                                ("points", "template", "weight", "count", "sd", "hessian")), parts[0][k].size)
-                  for k in range(len(parts[0]))]
-        return AnchorTemplates(levels, (int(anchors.shape[-2]), int(anchors.shape[-1])))
-
-    def _anchor_chunk(self, anchors: torch.Tensor) -> list[AnchorLevel]:
-        G = len(anchors)
-        gray = self._luminance(anchors)
-        mask = (anchors.float() > _FOREGROUND).any(dim=1, keepdim=True).float()    # (G, 1, H, W), before the blur
-        out = []
-        for level, (image, soft) in enumerate(zip(self._pyramid(gray), self._pyramid(mask), strict=True)):
-            h, w = image.shape[-2:]
-            fg = soft > 0.5 if level else soft > 0
-            if self.erode:  # erosion = not (dilated background)
-                k = 2 * self.erode + 1
-                fg = ~(F.max_pool2d((~fg).float(), k, stride=1, padding=self.erode) > 0)
-            grad = spatial_gradient(image, mode="diff", normalized=True)[:, 0]      # (G, 2, h, w) d/dx, d/dy px
-            gx = grad[:, 0].reshape(G, -1) * ((w - 1) / 2.0)                       # per normalised unit
-            gy = grad[:, 1].reshape(G, -1) * ((h - 1) / 2.0)
-            flat_fg = fg.reshape(G, -1)
-            n = h * w if self.max_pixels is None else min(self.max_pixels, h * w)
-            score = torch.where(flat_fg, gx * gx + gy * gy, torch.full_like(gx, -1.0))
-            chosen = score.topk(n, dim=1, sorted=False).indices.sort(dim=1).values if n < h * w else \
-                torch.arange(h * w, device=anchors.device).expand(G, -1)
-            weight = flat_fg.gather(1, chosen).float()                              # (G, n)
-            count = weight.sum(1).clamp_min(1.0)
-            values = image.reshape(G, -1).gather(1, chosen)
-            mean = (values * weight).sum(1, keepdim=True) / count[:, None]
-            std = (((values - mean) ** 2 * weight).sum(1, keepdim=True) / count[:, None]).sqrt().clamp_min(1e-4)
-            template = (values - mean) / std * weight
-            u = torch.linspace(-1.0, 1.0, w, device=anchors.device)
-            v = torch.linspace(-1.0, 1.0, h, device=anchors.device)
-            x, y = u[chosen % w], v[torch.div(chosen, w, rounding_mode="floor")]
-            points = torch.stack([x, y, torch.ones_like(x)], dim=-1)                # (G, n, 3)
-            gx, gy = gx.gather(1, chosen) / std * weight, gy.gather(1, chosen) / std * weight
-            radial = gx * x + gy * y
-            sd = torch.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, -radial * x, -radial * y], dim=-1)
-            # project out the appearance basis {1, T} (the gain and bias): sd orthogonal to both over the pixels
-            w3 = weight[..., None]
-            sd = (sd - (sd * w3).sum(1, keepdim=True) / count[:, None, None]) * w3
-            sd = sd - template[..., None] * ((template[..., None] * sd).sum(1, keepdim=True) / count[:, None, None])
-            sd64 = sd.double()
-            out.append(AnchorLevel(points, template, weight, count, sd, sd64.transpose(1, 2) @ sd64,
-                                   (int(h), int(w))))
-        return out
+            raise MatlError(f"anchors must be (G, C, H, W), got {tuple(anchors.shape)}")
+        start = time.perf_counter()
+        gray = _luminance(anchors)
+        fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
+        templates = [self._anchor(gray[i], fg[i]) for i in range(len(gray))]
+        return AnchorTemplates(templates, (int(anchors.shape[-2]), int(anchors.shape[-1])),
+                               time.perf_counter() - start)
 
     def prepare(self, anchors: torch.Tensor) -> FastRefiner:
-        """Precompute the templates of a gallery's anchors ``(G, 3, H, W)``; returns self."""
+        """Precompute the data of a gallery's anchors ``(G, 3, H, W)``; returns self."""
         self._templates = self.anchor_templates(anchors)
         return self
 
     # ------------------------------------------------------------------------------ objective
-    def _rho_and_weight(self, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Robust loss per residual and its IRLS weight ``rho'(r) / r``."""
-        d = self.delta
+    def _loss(self, r: np.ndarray, anchor: AnchorLevel, delta: float) -> float:
+        """Mean robust loss over the region of unscaled residuals ``r`` ``(h * w,)`` (0 off the region),
+        ``delta`` in the residuals' units; the caller divides by ``scale^2``."""
         if self.loss == "l2":
-            return 0.5 * r * r, torch.ones_like(r)
+            value = 0.5 * float(np.dot(r, r))
+        elif self.loss == "huber":  # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
+            a = np.abs(r)
+            m = cv2.threshold(a, delta, 0.0, cv2.THRESH_TRUNC)[1].ravel()
+            value = float(np.dot(m, a)) - 0.5 * float(np.dot(m, m))
+        else:
+            value = 0.5 * delta * delta * float(np.log1p(np.square(r / delta)).sum())
+        return value / anchor.total
+
+    def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float
+                  ) -> tuple[float, np.ndarray, float]:
+        """Loss, unscaled residuals ``(h * w, 1)`` and gain at the normalised pose ``H`` ``(3, 3)``."""
+        M = anchor.pixel_H_norm @ H @ anchor.norm_H_pixel  # anchor level px -> query level px
+        warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
+                                     borderValue=0).reshape(-1, 1)
+        a, f = anchor.image, anchor.fg
+        s_fw = float(np.dot(f[:, 0], warped[:, 0]))
+        gain = (float(np.dot(a[:, 0], warped[:, 0])) - anchor.mean * s_fw) * anchor.inv_var
+        bias = s_fw * anchor.inv_count - gain * anchor.mean
+        r = cv2.scaleAdd(a, -gain, warped)               # warped - gain * A
+        if bias != 0.0:
+            r = cv2.scaleAdd(f, -bias, r)                # - bias * F
+        if anchor.region is not None:
+            r *= anchor.region
+        loss = self._loss(r[:, 0], anchor, self.delta * scale) / (scale * scale)
+        return (loss if math.isfinite(loss) else math.inf), r[:, 0], gain
+
+    def _normal_equations(self, r: np.ndarray, anchor: AnchorLevel, gain: float, scale: float
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """``(A (8, 8), b (8,))`` of the IRLS Gauss-Newton step ``A dp = b``."""
+        rs = r[anchor.index]
+        sdT = anchor.sdT
+        A = anchor.hessian
         if self.loss == "huber":
-            a = r.abs()
-            inside = a <= d
-            return torch.where(inside, 0.5 * r * r, d * (a - 0.5 * d)), torch.where(inside, 1.0, d / a.clamp_min(1e-12))
-        z = (r / d) ** 2
-        if self.loss == "cauchy":
-            return 0.5 * d * d * torch.log1p(z), 1.0 / (1.0 + z)
-        return 0.5 * r * r / (1.0 + z), 1.0 / (1.0 + z) ** 2  # geman_mcclure
+            d = self.delta * scale
+            a = np.abs(rs)
+            out = np.flatnonzero(a > d)  # few pixels: the Hessian is corrected on them only
+            if len(out):
+                weights = (d / a[out]).astype(np.float32)
+                rs = rs.copy()
+                rs[out] *= weights
+                sd_out = sdT[:, out]
+                A = A - (sd_out * (1.0 - weights)) @ sd_out.T
+        elif self.loss == "cauchy":
+            weights = (1.0 / (1.0 + np.square(rs / (self.delta * scale)))).astype(np.float32)
+            A = (sdT * weights) @ sdT.T
+            rs = rs * weights
+        return A.astype(np.float64), ((sdT @ rs).astype(np.float64) / gain).reshape(8, 1)
 
-    def _evaluate(self, query: torch.Tensor, anchor: AnchorLevel, H: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Residuals ``(B, n)``, IRLS weights ``(B, n)`` (0 off the foreground) and loss ``(B,)`` at ``H``.
-
-        Args:
-            query: ``(B, 1, h, w)`` the query's level.
-            anchor: the level's anchors, one per query.
-            H: ``(B, 3, 3)`` float64 normalised ``query_H_anchor``.
-        """
-        pts = anchor.points @ H.float().transpose(1, 2)                              # (B, n, 3)
-        grid = pts[..., :2] / pts[..., 2:]
-        warped = F.grid_sample(query, grid[:, None], mode="bilinear", padding_mode="zeros",
-                               align_corners=True)[:, 0, 0]                          # (B, n)
-        # pixels the pose maps outside the query are missing (not black)
-        wt = anchor.weight * (grid.abs().amax(-1) <= 1.0)
-        count = wt.sum(1)
-        safe = count.clamp_min(1.0)
-        template = anchor.template * wt
-        bias = (warped * wt).sum(1) / safe
-        t_mean = template.sum(1) / safe
-        t_var = (template * anchor.template).sum(1) / safe - t_mean * t_mean
-        gain = ((warped * template).sum(1) / safe - bias * t_mean) / t_var.clamp_min(1e-6)
-        spread = ((warped * warped * wt).sum(1) / safe - bias * bias).clamp_min(0.0).sqrt()
-        # gain * sqrt(t_var) / spread: the correlation coefficient
-        valid = (gain * t_var.clamp_min(0.0).sqrt() > self.min_correlation * spread) & (count >= 0.5 * anchor.count)
-        scale = (spread / t_var.clamp_min(1e-12).sqrt()).clamp_min(1e-6)  # the query's std in template units
-        r = ((warped - bias[:, None]) / scale[:, None] + t_mean[:, None] - anchor.template) * wt
-        rho, w = self._rho_and_weight(r)
-        loss = (rho * wt).sum(1) / safe
-        loss = torch.where(valid & torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
-        return r, w * wt, loss
-
-    def _level(self, query: torch.Tensor, anchor: AnchorLevel, H: torch.Tensor
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Gauss-Newton at one level; returns the lowest-loss pose ``(B, 3, 3)`` and its loss ``(B,)``."""
-        B = len(H)
+    def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
+               ) -> tuple[np.ndarray, float]:
+        """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose and its loss."""
         h, w = anchor.size
-        corner_J = _corner_jacobian(H.device)                                        # (8, 8)
-        half = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], device=H.device)
-        active = torch.ones(B, dtype=torch.bool, device=H.device)
-        best_H, best_loss = H, torch.full((B,), math.inf, dtype=torch.float32, device=H.device)
-        eye8 = torch.eye(8, dtype=torch.float64, device=H.device)
-        for it in range(self.iterations + 1):
-            r, wt, loss = self._evaluate(query, anchor, H)
-            better = loss < best_loss
-            best_H = torch.where(better[:, None, None], H, best_H)
-            best_loss = torch.where(better, loss, best_loss)
-            active = active & better  # a step that did not lower the loss ends that query's level
-            if it == self.iterations or not bool(active.any()):
+        corner_J = _corner_jacobian() * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)  # dp -> corner motion, px
+        loss, r, gain = self._evaluate(query, anchor, H, scale)
+        lam = self.damping
+        A = b = None
+        for _ in range(iterations):
+            if not math.isfinite(loss) or gain <= 1e-6:
                 break
-            g = (anchor.sd.transpose(1, 2) @ (wt * r)[..., None]).double()            # (B, 8, 1)
-            if self.loss == "l2":
-                A = anchor.hessian
+            if A is None:  # the normal equations at the current (best) pose
+                A, b = self._normal_equations(r, anchor, gain, scale)
+            ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_CHOLESKY)
+            if not ok:
+                ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_SVD)
+            dp = dp.ravel()
+            if not ok or not np.all(np.isfinite(dp)):
+                break
+            candidate = H @ _inverse_update(dp)
+            candidate = candidate / candidate[2, 2]
+            cand_loss, cand_r, cand_gain = self._evaluate(query, anchor, candidate, scale)
+            motion = dp @ corner_J
+            step = float(np.sqrt(motion[0::2] ** 2 + motion[1::2] ** 2).max())
+            if cand_loss < loss:
+                H, loss, r, gain = candidate, cand_loss, cand_r, cand_gain
+                lam = max(lam * 0.1, 1e-9)
+                A = b = None
+                if step < self.tolerance:
+                    break
             else:
-                A = (anchor.sd.transpose(1, 2) @ (anchor.sd * wt[..., None])).double()
-            A = A + self.damping * torch.diag_embed(torch.diagonal(A, dim1=1, dim2=2)) + 1e-9 * eye8
-            dp = torch.nan_to_num(torch.linalg.solve(A, g)[..., 0], nan=0.0, posinf=0.0, neginf=0.0)
-            # first-order motion of the 4 corners, px of this level: (B, 8) -> (B, 4, 2)
-            step_px = (dp.float() @ corner_J).view(B, 4, 2).mul(half).norm(dim=-1).amax(dim=-1)
-            # inv(I + D(dp)) to first order: I - D(dp) (exact at convergence, where dp -> 0)
-            candidate = H @ _update_matrix(-dp)
-            candidate = candidate / candidate[:, 2:3, 2:3]
-            H = torch.where(active[:, None, None] & torch.isfinite(candidate).all(2).all(1)[:, None, None],
-                            candidate, H)
-            active = active & (step_px >= self.tolerance)
-            if not bool(active.any()):  # every query converged: evaluate the last step, then stop
-                r, wt, loss = self._evaluate(query, anchor, H)
-                better = loss < best_loss
-                best_H = torch.where(better[:, None, None], H, best_H)
-                best_loss = torch.where(better, loss, best_loss)
-                break
-        return best_H, best_loss
+                lam = min(lam * 10.0, 1e9)
+                if step < self.tolerance:  # a step this small does not lower the loss: converged
+                    break
+        return H, loss
+
+    def _well_conditioned(self, H: np.ndarray) -> bool:
+        if not np.all(np.isfinite(H)):
+            return False
+        sv = np.linalg.svd(H, compute_uv=False)
+        return bool(sv[-1] > 0 and sv[0] / sv[-1] < self.max_condition)
+
+    def refine_one(self, query: np.ndarray, anchor: list[AnchorLevel], query_H_anchor: np.ndarray,
+                   timing: bool = False) -> tuple[np.ndarray, float, float, bool]:
+        """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``.
+
+        Returns ``(query_H_anchor (3, 3) float64 pixels, loss_before, loss_after, accepted)``;
+        ``timing=True`` writes the milliseconds of each level into :attr:`last_level_ms` (finest first).
+        """
+        H0 = np.asarray(query_H_anchor, dtype=np.float64)
+        if not np.all(np.isfinite(H0)) or abs(H0[2, 2]) < 1e-12:
+            return H0, math.inf, math.inf, False
+        full = anchor[0]
+        H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
+        H0n = H0n / H0n[2, 2]
+        mean, std = cv2.meanStdDev(query, mask=(query > _FOREGROUND).view(np.uint8))
+        scale = max(float(std[0, 0]), self.min_std)
+        query = self._blurred(query)
+        pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
+        H, loss = H0n, math.inf
+        times = [0.0] * len(pyramid)
+        for level in reversed(range(len(pyramid))):  # coarsest first
+            t0 = time.perf_counter() if timing else 0.0
+            H, loss = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
+            if timing:
+                times[level] = 1e3 * (time.perf_counter() - t0)
+        if timing:
+            self.last_level_ms = times
+        loss_before = self._evaluate(query, full, H0n, scale)[0]
+        accepted = loss < loss_before and self._well_conditioned(H)
+        if not accepted:
+            return H0, loss_before, loss_before, False
+        H_px = full.pixel_H_norm @ H @ full.norm_H_pixel
+        return H_px / H_px[2, 2], loss_before, loss, True
 
     # ------------------------------------------------------------------------------ main
     @torch.no_grad()
@@ -350,45 +452,42 @@ class FastRefiner:
             query_H_anchor: ``(B, 3, 3)`` pixel homographies (anchor pixel -> query pixel) to start from.
             templates: :meth:`anchor_templates` of the gallery; None: those of :meth:`prepare`.
         Returns:
-            :class:`~matl.inference.refine.RefineResult` with float64 pixel homographies.
+            :class:`~matl.inference.refine.RefineResult` with float64 pixel homographies (on the
+            device of ``query_H_anchor``).
         """
         templates = templates if templates is not None else self._templates
         if templates is None:
-            raise RuntimeError("FastRefiner: call prepare(gallery images) or pass templates")
-        if queries.ndim != 4 or query_H_anchor.shape != (len(queries), 3, 3) or anchor_index.shape != (len(queries),):
-            raise ValueError(f"queries must be (B, C, H, W), anchor_index (B,) and query_H_anchor (B, 3, 3), got "
-                             f"{tuple(queries.shape)}, {tuple(anchor_index.shape)}, {tuple(query_H_anchor.shape)}")
+            raise MatlError("FastRefiner: call prepare(gallery images) or pass templates")
+        B = len(queries)
+        if queries.ndim != 4 or query_H_anchor.shape != (B, 3, 3) or anchor_index.shape != (B,):
+            raise MatlError(f"queries must be (B, C, H, W), anchor_index (B,) and query_H_anchor (B, 3, 3), got "
+                            f"{tuple(queries.shape)}, {tuple(anchor_index.shape)}, {tuple(query_H_anchor.shape)}")
         size = (int(queries.shape[-2]), int(queries.shape[-1]))
         if size != templates.image_size:
-            raise ValueError(f"queries are {size} but the anchors {templates.image_size}")
-        previous = torch.get_num_threads()
-        if self.threads is not None:
-            torch.set_num_threads(self.threads)
+            raise MatlError(f"queries are {size} but the anchors {templates.image_size}: refine at the gallery's size")
+        gray = _luminance(queries)
+        starts = query_H_anchor.detach().double().cpu().numpy()
+        index = anchor_index.detach().cpu().numpy()
+        out = np.empty((B, 3, 3))
+        before, after, accepted = np.empty(B), np.empty(B), np.zeros(B, dtype=bool)
+        previous = cv2.getNumThreads()
+        if self.threads is not None and self.threads != previous:
+            cv2.setNumThreads(self.threads)
         try:
-            return self._refine(queries, templates.take(anchor_index.to(templates.levels[0].points.device)),
-                                query_H_anchor, size)
+            for i in range(B):
+                out[i], before[i], after[i], accepted[i] = self.refine_one(gray[i], templates.anchors[int(index[i])],
+                                                                           starts[i], timing=B == 1)
         finally:
-            if self.threads is not None:
-                torch.set_num_threads(previous)
+            if self.threads is not None and self.threads != previous:
+                cv2.setNumThreads(previous)
+        device = query_H_anchor.device
+        return RefineResult(torch.from_numpy(out).to(device), torch.from_numpy(before).to(device),
+                            torch.from_numpy(after).to(device), torch.from_numpy(accepted).to(device))
 
     def refine_images(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor) -> RefineResult:
-        """The same refinement with each query's anchor image ``(B, 3, H, W)`` given (templates computed here)."""
-        return self(queries, torch.arange(len(anchors), device=anchors.device), query_H_anchor,
-                    self.anchor_templates(anchors))
+        """The same refinement with each query's anchor image ``(B, 3, H, W)`` given (their data computed here)."""
+        return self(queries, torch.arange(len(anchors)), query_H_anchor, self.anchor_templates(anchors))
 
-    def _refine(self, queries: torch.Tensor, anchors: AnchorTemplates, query_H_anchor: torch.Tensor,
-                size: tuple[int, int]) -> RefineResult:
-        H0 = query_H_anchor.double()
-        finite0 = torch.isfinite(H0).all(2).all(1)
-        H0n = pixel_to_normalised(torch.where(finite0[:, None, None], H0, torch.eye(3, dtype=H0.dtype,
-                                                                                    device=H0.device)), size)
-        pyramid = self._pyramid(self._luminance(queries))[:len(anchors.levels)]
-        H = H0n
-        for level in reversed(range(len(pyramid))):  # coarsest first
-            H, loss = self._level(pyramid[level], anchors.levels[level], H)
-        loss_before = self._evaluate(pyramid[0], anchors.levels[0], H0n)[2]
-        loss_before = torch.where(finite0, loss_before, torch.full_like(loss_before, math.inf))
-        accepted = finite0 & (loss < loss_before) & ~degenerate_homographies(H, self.max_condition)
-        loss_after = torch.where(accepted, loss, loss_before)
-        H_px = torch.where(accepted[:, None, None], normalised_to_pixel(H, size), H0)
-        return RefineResult(H_px, loss_before, loss_after, accepted)
+    def options(self) -> dict[str, Any]:
+        """The settings, for result files."""
+        return {k: v for k, v in vars(self).items() if not k.startswith("_") and k != "last_level_ms"}

@@ -2,7 +2,7 @@
 
 * ``search=exact|faiss`` (config group ``conf/search/``): the gallery search backend of an embedding
   model's recognizer (:mod:`matl.inference.search`).
-* ``refine=true`` with the ``refiner`` node (``conf/refiner/photometric.yaml``): wrap the recognizer
+* ``refine=true`` with the ``refiner`` node (``conf/refiner/``: ``fast`` by default, or ``photometric``): wrap the recognizer
   in :class:`matl.inference.refine.RefinedRecognizer`.
 """
 
@@ -64,7 +64,7 @@ def configure_recognizer(recognizer: Callable[..., Prediction], cfg: DictConfig
         if getattr(recognizer, "stn", True) is None:
             raise MatlError("refine=true needs a pose to refine: this model has no STN (model=tl estimates no pose)")
         if cfg.get("refiner") is None:
-            raise MatlError("refine=true needs a refiner node (conf/refiner/photometric.yaml; add refiner=photometric)")
+            raise MatlError("refine=true needs a refiner node (conf/refiner/; add refiner=fast)")
         from matl.inference.refine import RefinedRecognizer
 
         refiner = instantiate_node(cfg.refiner, "refiner")

@@ -302,21 +302,25 @@ class RefinedRecognizer:
     Wraps anything returning a :class:`Prediction` with ``query_H_anchor`` and ``gallery_index``
     (MATL's :class:`~matl.inference.recognizer.Recognizer`, the STN classifier's, a keypoint baseline's);
     recognition is unchanged, ``query_H_anchor`` and ``query_H_canon`` are replaced. Queries without
-    a match (``gallery_index == -1``) or without a pose keep their prediction.
+    a match (``gallery_index == -1``) or without a pose keep their prediction. A refiner whose ``start``
+    is ``stn`` refines ``s()``'s pose: the recognizer's alignment stage (``model.align``), whose job the
+    refinement does, is skipped during the call.
 
     Args:
         recognizer: the wrapped callable; its ``gallery`` attribute is used unless ``gallery`` is given.
-        refiner: the refinement: :class:`~matl.inference.fast_refine.FastRefiner` (anything with a
-            ``prepare(anchor images)``: its per-anchor data is computed here, once for the gallery, and
-            queries pass anchor indices) or :class:`PhotometricRefiner` (queries pass anchor images).
+        refiner: the refinement: :class:`~matl.inference.fast_refine.FastRefiner` (anything with an
+            ``anchor_templates(anchor images)``: its per-anchor data is computed here, once for the gallery,
+            and queries pass anchor indices) or :class:`PhotometricRefiner` (queries pass anchor images).
+        templates: that per-anchor data when already computed for this gallery (another recognizer's).
     """
 
     def __init__(self, recognizer: Callable[[torch.Tensor], Prediction], refiner: Any,
-                 gallery: Any = None) -> None:
+                 gallery: Any = None, templates: Any = None) -> None:
         self.recognizer, self.refiner = recognizer, refiner
         self.gallery = gallery if gallery is not None else recognizer.gallery
-        self.templates = refiner.anchor_templates(self.gallery.images) if hasattr(refiner, "anchor_templates") \
-            else None  # per-anchor data of the inverse-compositional refiner, once per gallery
+        if templates is None and hasattr(refiner, "anchor_templates"):
+            templates = refiner.anchor_templates(self.gallery.images)  # once per gallery
+        self.templates = templates  # per-anchor data of the inverse-compositional refiner (None: photometric)
         self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
@@ -324,9 +328,25 @@ class RefinedRecognizer:
             raise AttributeError(name)
         return getattr(self.recognizer, name)
 
+    @property
+    def skips_align(self) -> bool:
+        """The refiner starts from ``s()``'s pose (``refiner.start=stn``): the wrapped recognizer's learned
+        alignment stage (``model.align``) is not run."""
+        return getattr(self.refiner, "start", "align") == "stn" and getattr(self.recognizer, "align", None) is not None
+
+    def _recognize(self, queries: torch.Tensor) -> Prediction:
+        if not self.skips_align:
+            return self.recognizer(queries)
+        align = self.recognizer.align
+        self.recognizer.align = None  # restored below, whatever happens
+        try:
+            return self.recognizer(queries)
+        finally:
+            self.recognizer.align = align
+
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor) -> Prediction:
-        pred = self.recognizer(queries)
+        pred = self._recognize(queries)
         if pred.query_H_anchor is None:
             return pred
         g = self.gallery
