@@ -172,7 +172,7 @@ def _luminance(images: torch.Tensor) -> np.ndarray:
     array = images.detach().float().cpu().numpy()
     if array.shape[1] == 1:
         return np.ascontiguousarray(array[:, 0])
-    return np.ascontiguousarray(np.tensordot(_LUMA, array, axes=([0], [1])))
+    return array[:, 0] * _LUMA[0] + array[:, 1] * _LUMA[1] + array[:, 2] * _LUMA[2]  # per pixel: any batch alike
 
 
 class FastRefiner:
@@ -284,11 +284,13 @@ class FastRefiner:
             gxs, gys = gx.ravel()[index], gy.ravel()[index]
             radial = gxs * x + gys * y
             sd = np.stack([gxs * x, gxs * y, gxs, gys * x, gys * y, gys, -radial * x, -radial * y])  # (8, n)
-            count = float(mask.sum())
-            mean = float(image.sum() / max(count, 1.0))
-            var = float(((image - mean) ** 2 * mask).sum())
+            fit = mask if region is None else region  # the gain / bias fit's support: the loss's foreground
+            count = float(fit.sum())
+            mean = float((image * fit).sum() / max(count, 1.0))
+            var = float(((image - mean) ** 2 * fit).sum())
+            image = image if region is None else image * region
             out.append(AnchorLevel(
-                np.ascontiguousarray(image.reshape(-1, 1), dtype=np.float32), mask.reshape(-1, 1),
+                np.ascontiguousarray(image.reshape(-1, 1), dtype=np.float32), fit.reshape(-1, 1),
                 None if region is None else np.ascontiguousarray(region.reshape(-1, 1)), (int(h), int(w)), count,
                 mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
                 np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, np.linalg.inv(norm_H_pixel)))
