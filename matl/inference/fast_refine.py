@@ -72,9 +72,9 @@ class AnchorLevel:
     """What one anchor contributes at one pyramid level (``n`` pixels carry a gradient).
 
     Attributes:
-        image: ``(h * w, 1)`` float32 luminance (rows of the ``(h, w)`` level), 0 off the foreground.
-        fg: ``(h * w, 1)`` float32 foreground indicator ``F`` (the gain / bias fit's support).
-        region: ``(h * w, 1)`` float32 0/1 pixels of the loss (``region=foreground``); None: all (``frame``).
+        image: ``(h, w)`` float32 luminance, 0 off the foreground.
+        fg: ``(h, w)`` float32 foreground indicator ``F`` (the gain / bias fit's support).
+        region: ``(h, w)`` float32 0/1 pixels of the loss (``region=foreground``); None: all (``frame``).
         size: ``(h, w)`` of the level.
         count: pixels of ``F``; ``mean`` ``A``'s mean over them, ``var`` ``sum_F (A - mean)^2``.
         total: ``sum(region)``: the loss is a mean over these pixels.
@@ -157,6 +157,9 @@ def _corner_jacobian() -> np.ndarray:
         rows.append([x, y, 1.0, 0.0, 0.0, 0.0, -x * x, -x * y])
         rows.append([0.0, 0.0, 0.0, x, y, 1.0, -x * y, -y * y])
     return np.array(rows).T
+
+
+_CORNER_J = _corner_jacobian()
 
 
 def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
@@ -290,8 +293,8 @@ class FastRefiner:
             var = float(((image - mean) ** 2 * fit).sum())
             image = image if region is None else image * region
             out.append(AnchorLevel(
-                np.ascontiguousarray(image.reshape(-1, 1), dtype=np.float32), fit.reshape(-1, 1),
-                None if region is None else np.ascontiguousarray(region.reshape(-1, 1)), (int(h), int(w)), count,
+                np.ascontiguousarray(image, dtype=np.float32), np.ascontiguousarray(fit, dtype=np.float32),
+                None if region is None else np.ascontiguousarray(region, dtype=np.float32), (int(h), int(w)), count,
                 mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
                 np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, np.linalg.inv(norm_H_pixel)))
         return out
@@ -314,44 +317,49 @@ class FastRefiner:
         return self
 
     # ------------------------------------------------------------------------------ objective
-    def _loss(self, r: np.ndarray, anchor: AnchorLevel, delta: float) -> float:
-        """Mean robust loss over the region of unscaled residuals ``r`` ``(h * w,)`` (0 off the region),
-        ``delta`` in the residuals' units; the caller divides by ``scale^2``."""
+    def _loss(self, r: np.ndarray, anchor: AnchorLevel, delta: float) -> tuple[float, bool]:
+        """Mean robust loss over the region of unscaled residuals ``r`` ``(h, w)`` (0 off the region), ``delta`` in
+        the residuals' units (the caller divides by ``scale^2``), and whether any residual is beyond ``delta``."""
+        flat = r.ravel()
         if self.loss == "l2":
-            value = 0.5 * float(np.dot(r, r))
-        elif self.loss == "huber":  # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
-            a = np.abs(r)
+            return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
+        low, high = cv2.minMaxLoc(r)[:2]
+        if max(-low, high) <= delta:  # every residual in the quadratic part (huber), or weighted alike (cauchy)
+            if self.loss == "huber":
+                return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
+        if self.loss == "huber":  # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
+            a = np.abs(flat)
             m = cv2.threshold(a, delta, 0.0, cv2.THRESH_TRUNC)[1].ravel()
-            value = float(np.dot(m, a)) - 0.5 * float(np.dot(m, m))
-        else:
-            value = 0.5 * delta * delta * float(np.log1p(np.square(r / delta)).sum())
-        return value / anchor.total
+            return (float(np.dot(m, a)) - 0.5 * float(np.dot(m, m))) / anchor.total, True
+        return 0.5 * delta * delta * float(np.log1p(np.square(flat / delta)).sum()) / anchor.total, True
 
     def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float
-                  ) -> tuple[float, np.ndarray, float]:
-        """Loss, unscaled residuals ``(h * w, 1)`` and gain at the normalised pose ``H`` ``(3, 3)``."""
+                  ) -> tuple[float, np.ndarray, float, bool]:
+        """Loss, unscaled residuals ``(h, w)``, gain and whether the robust loss down-weights any residual,
+        at the normalised pose ``H`` ``(3, 3)``."""
         M = anchor.pixel_H_norm @ H @ anchor.norm_H_pixel  # anchor level px -> query level px
         warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
-                                     borderValue=0).reshape(-1, 1)
-        a, f = anchor.image, anchor.fg
-        s_fw = float(np.dot(f[:, 0], warped[:, 0]))
-        gain = (float(np.dot(a[:, 0], warped[:, 0])) - anchor.mean * s_fw) * anchor.inv_var
+                                     borderValue=0)
+        a, f, flat = anchor.image, anchor.fg, warped.ravel()
+        s_fw = float(np.dot(f.ravel(), flat))
+        gain = (float(np.dot(a.ravel(), flat)) - anchor.mean * s_fw) * anchor.inv_var
         bias = s_fw * anchor.inv_count - gain * anchor.mean
         r = cv2.scaleAdd(a, -gain, warped)               # warped - gain * A
         if bias != 0.0:
             r = cv2.scaleAdd(f, -bias, r)                # - bias * F
         if anchor.region is not None:
-            r *= anchor.region
-        loss = self._loss(r[:, 0], anchor, self.delta * scale) / (scale * scale)
-        return (loss if math.isfinite(loss) else math.inf), r[:, 0], gain
+            r = cv2.multiply(r, anchor.region)
+        loss, robust = self._loss(r, anchor, self.delta * scale)
+        loss /= scale * scale
+        return (loss if math.isfinite(loss) else math.inf), r, gain, robust
 
-    def _normal_equations(self, r: np.ndarray, anchor: AnchorLevel, gain: float, scale: float
+    def _normal_equations(self, r: np.ndarray, anchor: AnchorLevel, gain: float, scale: float, robust: bool
                           ) -> tuple[np.ndarray, np.ndarray]:
-        """``(A (8, 8), b (8,))`` of the IRLS Gauss-Newton step ``A dp = b``."""
-        rs = r[anchor.index]
+        """``(A (8, 8), b (8, 1))`` of the IRLS Gauss-Newton step ``A dp = b`` (``robust``: some weight is below 1)."""
+        rs = r.ravel()[anchor.index]
         sdT = anchor.sdT
         A = anchor.hessian
-        if self.loss == "huber":
+        if robust and self.loss == "huber":
             d = self.delta * scale
             a = np.abs(rs)
             out = np.flatnonzero(a > d)  # few pixels: the Hessian is corrected on them only
@@ -361,7 +369,7 @@ class FastRefiner:
                 rs[out] *= weights
                 sd_out = sdT[:, out]
                 A = A - (sd_out * (1.0 - weights)) @ sd_out.T
-        elif self.loss == "cauchy":
+        elif robust:  # cauchy
             weights = (1.0 / (1.0 + np.square(rs / (self.delta * scale)))).astype(np.float32)
             A = (sdT * weights) @ sdT.T
             rs = rs * weights
@@ -371,15 +379,15 @@ class FastRefiner:
                ) -> tuple[np.ndarray, float]:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose and its loss."""
         h, w = anchor.size
-        corner_J = _corner_jacobian() * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)  # dp -> corner motion, px
-        loss, r, gain = self._evaluate(query, anchor, H, scale)
+        corner_J = _CORNER_J * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)  # dp -> corner motion, px of the level
+        loss, r, gain, robust = self._evaluate(query, anchor, H, scale)
         lam = self.damping
         A = b = None
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
                 break
             if A is None:  # the normal equations at the current (best) pose
-                A, b = self._normal_equations(r, anchor, gain, scale)
+                A, b = self._normal_equations(r, anchor, gain, scale, robust)
             ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_SVD)
@@ -388,11 +396,11 @@ class FastRefiner:
                 break
             candidate = H @ _inverse_update(dp)
             candidate = candidate / candidate[2, 2]
-            cand_loss, cand_r, cand_gain = self._evaluate(query, anchor, candidate, scale)
+            cand_loss, cand_r, cand_gain, cand_robust = self._evaluate(query, anchor, candidate, scale)
             motion = dp @ corner_J
             step = float(np.sqrt(motion[0::2] ** 2 + motion[1::2] ** 2).max())
             if cand_loss < loss:
-                H, loss, r, gain = candidate, cand_loss, cand_r, cand_gain
+                H, loss, r, gain, robust = candidate, cand_loss, cand_r, cand_gain, cand_robust
                 lam = max(lam * 0.1, 1e-9)
                 A = b = None
                 if step < self.tolerance:
