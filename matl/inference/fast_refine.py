@@ -237,8 +237,12 @@ class FastRefiner:
             raise MatlError(f"refiner.start must be one of {', '.join(STARTS)}, got {start!r}")
         self.start = start
         self._templates: AnchorTemplates | None = None  # set by prepare()
-        #: per-level time of the last single query, ms (``timing=True`` calls), finest first
-        self.last_level_ms: list[float] = []
+        self._level_ms: list[float] = []
+
+    @property
+    def last_level_ms(self) -> list[float]:
+        """Milliseconds per pyramid level (finest first) of the last single-query call."""
+        return self._level_ms
 
     def _iterations(self, level: int) -> int:
         if isinstance(self.iterations, list):
@@ -422,7 +426,7 @@ class FastRefiner:
         """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``.
 
         Returns ``(query_H_anchor (3, 3) float64 pixels, loss_before, loss_after, accepted)``;
-        ``timing=True`` writes the milliseconds of each level into :attr:`last_level_ms` (finest first).
+        ``timing=True`` keeps the milliseconds of each level for :attr:`last_level_ms` (finest first).
         """
         H0 = np.asarray(query_H_anchor, dtype=np.float64)
         if not np.all(np.isfinite(H0)) or abs(H0[2, 2]) < 1e-12:
@@ -442,7 +446,7 @@ class FastRefiner:
             if timing:
                 times[level] = 1e3 * (time.perf_counter() - t0)
         if timing:
-            self.last_level_ms = times
+            self._level_ms = times
         loss_before = self._evaluate(query, full, H0n, scale)[0]
         accepted = loss < loss_before and self._well_conditioned(H)
         if not accepted:
@@ -500,4 +504,4 @@ class FastRefiner:
 
     def options(self) -> dict[str, Any]:
         """The settings, for result files."""
-        return {k: v for k, v in vars(self).items() if not k.startswith("_") and k != "last_level_ms"}
+        return {k: v for k, v in vars(self).items() if not k.startswith("_")}

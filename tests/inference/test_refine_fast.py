@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from matl.data.gallery import Gallery
 from matl.geometry import HomographySampler, corner_error_px, warp_image
@@ -153,3 +154,14 @@ def test_fast_refiner_options_are_one_line_errors() -> None:
             FastRefiner(**kwargs)
     with pytest.raises(MatlError, match="prepare"):
         FastRefiner()(torch.zeros(1, 3, S, S), torch.zeros(1, dtype=torch.long), torch.eye(3)[None])
+
+
+def test_refine_true_is_the_fast_refiner_with_the_config_defaults() -> None:
+    from matl.inference.api import _refiner
+    from matl.utils.errors import CONF_DIR
+
+    default = _refiner(True)
+    assert isinstance(default, FastRefiner)
+    configured = FastRefiner(**{k: v for k, v in OmegaConf.to_container(
+        OmegaConf.load(CONF_DIR / "refiner" / "fast.yaml")).items() if k != "_target_"})
+    assert default.options() == configured.options()
