@@ -653,7 +653,8 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
                       "sift_ransac / matl_int8_refine")
     parts = t.get("breakdown") or {}
     if parts:
-        names = [k for k in ("networks_ms", "stn_ms", "features_ms", "search_ms", "align_ms", "refine_ms") if k in parts]
+        names = [k for k in ("networks_ms", "stn_ms", "features_ms", "search_ms", "align_ms", "refine_ms")
+                 if k in parts]
         levels = " / ".join(_fmt(v, 3) for v in parts.get("refine_level_ms", []))
         table.add_row("breakdown (ms)", "", ", ".join(f"{k[:-3]} {_fmt(parts[k], 3)}" for k in names)
                       + (f"; refine per level (finest first) {levels}" if levels else ""))

@@ -220,8 +220,8 @@ class FastRefiner:
         if loss not in FAST_LOSSES:
             raise MatlError(f"refiner.loss must be one of {', '.join(FAST_LOSSES)}, got {loss!r}")
         if float(delta) <= 0 or float(damping) < 0 or int(min_size) < 4 or float(min_std) <= 0:
-            raise MatlError(f"refiner.delta and min_std must be > 0, damping >= 0 and min_size >= 4; got delta={delta}, "
-                            f"min_std={min_std}, damping={damping}, min_size={min_size}")
+            raise MatlError(f"refiner.delta and min_std must be > 0, damping >= 0 and min_size >= 4; got "
+                            f"delta={delta}, min_std={min_std}, damping={damping}, min_size={min_size}")
         if int(erode) < 0 or float(tolerance) < 0 or (threads is not None and int(threads) < 1):
             raise MatlError(f"refiner.erode and tolerance must be >= 0 and threads null or >= 1; got erode={erode}, "
                             f"tolerance={tolerance}, threads={threads}")
@@ -327,11 +327,11 @@ class FastRefiner:
         flat = r.ravel()
         if self.loss == "l2":
             return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
-        low, high = cv2.minMaxLoc(r)[:2]
-        if max(-low, high) <= delta:  # every residual in the quadratic part (huber), or weighted alike (cauchy)
-            if self.loss == "huber":
+        if self.loss == "huber":
+            low, high = cv2.minMaxLoc(r)[:2]
+            if max(-low, high) <= delta:  # every residual in the quadratic part
                 return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
-        if self.loss == "huber":  # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
+            # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
             a = np.abs(flat)
             m = cv2.threshold(a, delta, 0.0, cv2.THRESH_TRUNC)[1].ravel()
             return (float(np.dot(m, a)) - 0.5 * float(np.dot(m, m))) / anchor.total, True
@@ -434,7 +434,7 @@ class FastRefiner:
         full = anchor[0]
         H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
         H0n = H0n / H0n[2, 2]
-        mean, std = cv2.meanStdDev(query, mask=(query > _FOREGROUND).view(np.uint8))
+        std = cv2.meanStdDev(query, mask=(query > _FOREGROUND).view(np.uint8))[1]
         scale = max(float(std[0, 0]), self.min_std)
         query = self._blurred(query)
         pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)

@@ -2,8 +2,8 @@
 
 * ``search=exact|faiss`` (config group ``conf/search/``): the gallery search backend of an embedding
   model's recognizer (:mod:`matl.inference.search`).
-* ``refine=true`` with the ``refiner`` node (``conf/refiner/``: ``fast`` by default, or ``photometric``): wrap the recognizer
-  in :class:`matl.inference.refine.RefinedRecognizer`.
+* ``refine=true`` with the ``refiner`` node (``conf/refiner/``: ``fast`` by default, or ``photometric``):
+  wrap the recognizer in :class:`matl.inference.refine.RefinedRecognizer`.
 """
 
 from __future__ import annotations
