@@ -39,6 +39,14 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
     assert q["matl"] == by[str(timing["matl_threads"])] == min(by.values())
     assert q["sift_ransac"] == sift_by[str(timing["sift_threads"])] == min(sift_by.values())
     assert timing["matl_path"].startswith("compiled")
+    # where a refined query's time goes (refiner=fast, the default): each part > 0, the refinement per level
+    parts = timing["breakdown"]
+    assert parts["refiner"] == "FastRefiner" and parts["threads"] == timing["matl_threads"]
+    for key in ("networks_ms", "stn_ms", "features_ms", "search_ms", "refine_ms"):
+        assert parts[key] > 0, key
+    assert "align_ms" not in parts and parts["refine_skips_align"] is False  # the default config has no stage
+    assert len(parts["refine_level_ms"]) == 3 and all(ms > 0 for ms in parts["refine_level_ms"])  # 32, 16, 8 px
+    assert float(timing["notes"]["refine_templates_mb"]) > 0
 
     scaling = saved["gallery_scaling"]
     assert [row["anchors"] for row in scaling] == [600, 2000]
