@@ -56,7 +56,7 @@ SYNTHETIC = "matl.data.catalog.SyntheticCatalog"
 SHELVES = "matl.data.catalog.shelves.ShelfCatalog"
 CROP_FILL = 0.6  # the catalogs frame each plane's longer side at 0.6 of the image (data.source.fill)
 WARP_BATCH = 250
-METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
+METHODS = ("matl", "matl_refine", "sift", "sift_ecc", "lightglue", "xfeat", "xfeat_lighterglue")
 
 
 # ------------------------------------------------------------------------------------ never seen
