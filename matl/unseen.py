@@ -18,8 +18,8 @@ path, ``matl.predict`` with a gallery enrolled from image files (paper Sec. 2.1)
    pyrender views from 3D cameras (the plane-induced homography as truth), ``sizes`` other file sizes.
    The truth (object, plane, gallery file, ``query_H_canon`` in file pixels) goes to ``truth.jsonl``.
 4. *Methods* (``methods``): ``python -m matl.predict`` once per method on the same files, a separate
-   process each: ``matl``, ``matl_refine`` (``refine=true``), ``sift`` and ``sift_ecc``
-   (``baseline=sift|sift_ecc``, read and framed by the same code); scored by
+   process each: ``matl``, ``matl_refine`` (``refine=true``), ``sift``, ``sift_ecc``, ``lightglue``,
+   ``xfeat`` and ``xfeat_lighterglue`` (``baseline=<name>``, read and framed by the same code); scored by
    :func:`matl.score.score_files`; ``query_ms`` of every method timed here on the same queries
    (``timing.*``: batch of 1, gallery in memory, warm-up, the same thread count).
 

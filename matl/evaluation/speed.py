@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from rich.console import Console
 from rich.table import Table
 
@@ -66,6 +66,7 @@ def bench_options(cfg: DictConfig) -> DictConfig:
     threads = options.get("query_threads")
     if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
         raise MatlError(f"bench.query_threads={threads} is invalid: use an integer >= 1, or null for the run's threads")
+    extra_baseline_names(cfg, options)
     anchors = list(options.scaling_anchors)
     if any(not isinstance(a, int) or a < 1 for a in anchors):
         raise MatlError(f"bench.scaling_anchors={anchors} is invalid: use a list of integers >= 1")
@@ -222,6 +223,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
             sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
     sift_threads = int(min(sift_by_threads, key=lambda n: sift_by_threads[n]))
     query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
+    extra = measure_extra_baselines(cfg, options, gallery, cpu_queries, warmup, counts)  # bench.baselines
+    query_ms.update(extra.pop("query_ms"))
 
     timing = {
         "queries": count, "warmup": warmup, "statistic": "median over single-query calls (batch of 1)",
@@ -242,6 +245,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "breakdown": breakdown,
         **int8,
         **onnx,
+        **extra,
     }
     if notes:
         timing["notes"] = notes
@@ -391,6 +395,78 @@ def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, c
             "matl_onnx_path": f"onnxruntime {ort.__version__} CPUExecutionProvider (query_net.onnx and "
                               "gallery_net.onnx of matl.export format=onnx) + the recognizer's exact search and pose "
                               "(torch); matl_onnx_same_answers: share of the queries whose nearest anchor is eager's"}
+
+
+def extra_baseline_names(cfg: DictConfig, options: DictConfig) -> list[str]:
+    """``bench.baselines``: names of ``baselines.<name>`` nodes (``conf/bench.yaml`` composes them from
+    ``conf/baseline/``), each timed as ``query_ms.<name>``; checked (a one-line error names the choices)."""
+    value = options.get("baselines") or []
+    names = list(value) if isinstance(value, (list, tuple, ListConfig)) else [value]
+    known = sorted((cfg.get("baselines") or {}).keys())
+    bad = [n for n in names if not isinstance(n, str) or n not in known]
+    if bad or len(set(names)) != len(names):
+        raise MatlError(f"bench.baselines={names} is invalid: use a list of distinct names among {known} (extra "
+                        "baselines timed on the same queries; add another as baseline@baselines.<name> in bench.yaml)")
+    return [str(n) for n in names]
+
+
+def _missing_package(error: BaseException) -> ModuleNotFoundError | None:
+    """The ``ModuleNotFoundError`` behind a failed build (an optional package not installed), else None."""
+    seen: BaseException | None = error
+    while seen is not None:
+        if isinstance(seen, ModuleNotFoundError):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def measure_extra_baselines(cfg: DictConfig, options: DictConfig, gallery: Any, queries: torch.Tensor, warmup: int,
+                            counts: list[int]) -> dict[str, Any]:
+    """``query_ms.<name>`` of every ``bench.baselines`` entry, timed exactly as ``query_ms.sift_ransac``: the same
+    gallery (indexed once, not timed) and queries, one :class:`~matl.baselines.recognizer.BaselineRecognizer` call
+    per query at each thread count (torch's and OpenCV's), kept at its fastest.
+
+    A baseline whose optional package is not installed gets ``query_ms.<name>: null`` and the install hint in
+    ``baselines_skipped``; any other failure to build it is an error.
+
+    Returns:
+        ``{"query_ms": {name: ms}, "baselines": {name: {ms_by_threads, threads, index_seconds, options}},
+        "baselines_skipped": {name: reason}}`` (the last two only when non-empty).
+    """
+    from matl.baselines.recognizer import BaselineRecognizer, build_baseline
+
+    query_ms: dict[str, float | None] = {}
+    details: dict[str, Any] = {}
+    skipped: dict[str, str] = {}
+    for name in extra_baseline_names(cfg, options):
+        node = cfg.baselines[name]
+        try:
+            matcher = build_baseline(node, name)
+        except MatlError as error:
+            if _missing_package(error) is None:
+                raise
+            query_ms[name], skipped[name] = None, str(error)
+            log.info("bench: %s skipped: %s", name, error)
+            continue
+        log.info("bench: query_ms.%s", name)
+        start = time.perf_counter()
+        baseline = BaselineRecognizer(matcher, gallery)  # indexes the gallery once (not part of query_ms)
+        index_s = time.perf_counter() - start
+        by_threads = {}
+        for n in counts:
+            with opencv_threads(n):
+                by_threads[str(n)] = median_query_ms(baseline, queries, warmup, n)
+        threads = int(min(by_threads, key=lambda n: by_threads[n]))
+        query_ms[name] = by_threads[str(threads)]
+        details[name] = {"ms_by_threads": by_threads, "threads": threads, "index_seconds": index_s,
+                         "options": {k: v for k, v in OmegaConf.to_container(node, resolve=True).items()
+                                     if k != "_target_"}}
+    out: dict[str, Any] = {"query_ms": query_ms}
+    if details:
+        out["baselines"] = details
+    if skipped:
+        out["baselines_skipped"] = skipped
+    return out
 
 
 def thread_counts(options: DictConfig) -> list[int]:
@@ -640,6 +716,10 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
     table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
                   f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
     table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
+    for name, ms in q.items():  # bench.baselines
+        if name in t.get("baselines", {}) or name in t.get("baselines_skipped", {}):
+            table.add_row(f"query_ms.{name}", _fmt(ms), t.get("baselines_skipped", {}).get(name)
+                          or f"same {t['queries']} queries; {t['baselines'][name]['threads']} thread(s)")
     if "matl_onnx" in q or "matl_onnx_skipped" in t:
         table.add_row("query_ms.matl_onnx", _fmt(q.get("matl_onnx")), t.get("matl_onnx_skipped")
                       or f"onnxruntime; {t.get('matl_onnx_threads')} thread(s)")

@@ -56,7 +56,7 @@ SYNTHETIC = "matl.data.catalog.SyntheticCatalog"
 SHELVES = "matl.data.catalog.shelves.ShelfCatalog"
 CROP_FILL = 0.6  # the catalogs frame each plane's longer side at 0.6 of the image (data.source.fill)
 WARP_BATCH = 250
-METHODS = ("matl", "matl_refine", "sift", "sift_ecc")
+METHODS = ("matl", "matl_refine", "sift", "sift_ecc", "lightglue", "xfeat", "xfeat_lighterglue")
 
 
 # ------------------------------------------------------------------------------------ never seen
@@ -669,6 +669,25 @@ def benchmark_table(results: dict[str, dict[str, Any]], methods: list[str], comm
     return data, "\n".join(lines) + "\n"
 
 
+def write_speed_accuracy(data: dict[str, Any], folders: dict[str, Path], out: Path) -> dict[str, str]:
+    """``speed_accuracy.png`` and ``methods.md`` (:mod:`matl.reporting.speed_accuracy`) beside each condition's
+    ``unseen.json`` whose methods were timed; returns their paths relative to ``out`` per condition."""
+    from matl.reporting.speed_accuracy import methods_table, plot_speed_accuracy, timed_methods
+
+    written = {}
+    timing = data.get("timing") or {}
+    for condition, table in data["table"].items():
+        if not timed_methods(table):
+            continue
+        n = data["num_queries"][condition]
+        title = (f"{data['num_objects']} never-seen products, condition {condition}, {n} queries; query_ms: median "
+                 f"of {timing.get('queries')} single queries at {timing.get('threads')} thread(s)")
+        png = plot_speed_accuracy(table, folders[condition] / "speed_accuracy.png", title)
+        (folders[condition] / "methods.md").write_text(methods_table(table, n))
+        written[condition] = str(png.relative_to(out))
+    return written
+
+
 def unseen(cfg: DictConfig) -> dict[str, Any]:
     """Run the benchmark for a composed ``conf/unseen.yaml``.
 
@@ -707,6 +726,7 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
                                            train_data, folders[condition])
     data, text = benchmark_table(results, methods, _own_command())
     data["files"] = {c: str((folders[c] / "unseen.json").relative_to(out)) for c in conditions}
+    data["speed_accuracy"] = write_speed_accuracy(data, folders, out)
     write_json(out / "benchmark.json", data)
     (out / "benchmark.md").write_text(text)
     log.info("unseen: benchmark -> %s\n%s", out / "benchmark.md", text)

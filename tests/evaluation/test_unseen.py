@@ -173,6 +173,10 @@ def test_unseen_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> 
     table = (out / "benchmark.md").read_text()
     assert "| condition | queries | matl | sift |" in table and "| clean | 10 |" in table
     assert json.loads((out / "benchmark.json").read_text())["conditions"] == ["clean"]
+    # the timed methods on the speed x accuracy plane, and their table
+    assert json.loads((out / "benchmark.json").read_text())["speed_accuracy"] == {"clean": "speed_accuracy.png"}
+    assert (out / "speed_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "| SIFT+RANSAC (`sift`) |" in (out / "methods.md").read_text()
 
     # the recorded score command gives the same numbers
     args = result["commands"]["score"].split()[3:]
