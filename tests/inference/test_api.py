@@ -150,7 +150,8 @@ def easy_files(root: Path) -> tuple[Path, Path, torch.Tensor]:
         (gallery / name).mkdir(parents=True)
         queries.mkdir(exist_ok=True)
         cv2.imwrite(str(gallery / name / "front.png"), art[..., ::-1])
-        cv2.imwrite(str(queries / f"{name}.png"), cv2.warpPerspective(art[..., ::-1], H, (w, h), flags=cv2.INTER_LINEAR))
+        query = cv2.warpPerspective(art[..., ::-1], H, (w, h), flags=cv2.INTER_LINEAR)
+        cv2.imwrite(str(queries / f"{name}.png"), query)
     fit = fit_geometry(h, w, SIZE).model_H_file
     return gallery, queries, fit @ torch.from_numpy(H) @ torch.linalg.inv(fit)
 
