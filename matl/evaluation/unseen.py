@@ -325,6 +325,14 @@ WRITERS = {"clean": _write_clean_condition, "photometric": write_photometric, "m
            "clutter": write_clutter, "view": write_view, "sizes": write_sizes}
 
 
+OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0}
+
+
+def open_set_args(cfg: DictConfig) -> list[str]:
+    """predict's open-set statistic and verification overrides, from the same keys here."""
+    return [_arg(key, cfg.get(key, default)) for key, default in OPEN_SET_KEYS.items()]
+
+
 def left_out_products(names: list[str], fraction: float, seed: int) -> list[str]:
     """``round(fraction * len(names))`` products drawn with ``seed``, kept out of the gallery (open set)."""
     count = round(fraction * len(names))
@@ -401,6 +409,7 @@ def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, 
     if method in ("matl", "matl_refine"):
         node = OmegaConf.create({"ckpt": str(ckpt), "device": cfg.device, "refine": method == "matl_refine",
                                  "threshold": threshold, "open_set_quantile": cfg.get("open_set_quantile", 0.94),
+                                 **{key: cfg.get(key, default) for key, default in OPEN_SET_KEYS.items()},
                                  "gallery_fill": gallery_fill, "query_fill": query_fill, "batch_size": 1,
                                  "quantize": "none"})
         node.refiner = cfg.refiner
@@ -557,7 +566,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     common = [_arg("ckpt", ckpt_path), _arg("gallery", out / "gallery"), _arg("images", out / "queries"),
               _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill), _arg("batch_size", cfg.batch_size),
               _arg("device", cfg.device), _arg("threshold", "null" if threshold is None else threshold),
-              _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94))]
+              _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94)), *open_set_args(cfg)]
     primary = primary_method(methods)
     per_method: dict[str, dict[str, Any]] = {}
     rows_of: dict[str, list[dict[str, Any]]] = {}

@@ -12,16 +12,27 @@ image at model size, its ``N`` anchors' features (computed once, when the plane 
 matrix from its gallery image's pixels to the model frame, so poses come back in the pixels of the
 images the caller gave: ``cv2.warpPerspective(gallery_img, match.H, (w, h))`` lands on the query.
 
+Verification (``verify_top_k`` > 0, models with an STN): once a pose is known the query can be
+compared with the anchor pixel by pixel (:mod:`matl.inference.verify`): warped into the anchor's
+frame, its zero-mean normalised cross-correlation (ZNCC) with the anchor over the anchor's plane is
+near 1 when the product and the pose are right. The nearest anchor is verified first; when ``1 -
+ZNCC`` exceeds ``verify_max`` the next-nearest anchors (up to ``verify_top_k``, any product, plane
+or rotation, each posed by the STN and the alignment stage) are tried in turn, and the first that
+verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays.
+
 Open set: a query whose statistic exceeds :attr:`Recognizer.threshold` is answered ``known=False``
-(``object`` None). The statistic is ``ratio`` (default): the distance to the nearest anchor over
-the distance to the nearest anchor of any *other* product (a query of an enrolled product is much
-closer to it than to anything else; an unenrolled product is about as far from its two nearest
-products), or ``distance``: the nearest-anchor distance itself. With ``threshold="auto"`` the
-threshold is calibrated on the gallery alone (:func:`calibrate_open_set`): warped copies of every
-enrolled plane (the training warps) are embedded; their statistic against the whole gallery is
-the *genuine* sample, and against the gallery without their own product the *impostor* sample
-(what an unenrolled product looks like). The threshold is the ``open_set_quantile`` quantile of
-the genuine sample; ``score`` is the share of the impostor sample above the query's statistic.
+(``object`` None). The statistic (``open_set_statistic``) is ``verify`` (default): 0 when the
+answer's pose verifies, else ``ratio``; ``ratio``: the distance to the nearest anchor of the
+answer's product over the distance to the nearest anchor of any *other* product (a query of an
+enrolled product is much closer to it than to anything else; an unenrolled product is about as far
+from its two nearest products); or ``distance``: the answer's nearest-anchor distance itself. With
+``threshold="auto"`` the threshold is calibrated on the gallery alone (:func:`calibrate_open_set`):
+warped copies of every enrolled plane (the training warps) are recognised against the whole
+gallery, their statistics are the *genuine* sample, and against the gallery without their own
+product (its nearest other products; with ``verify``, their candidates verified the same way) the
+*impostor* sample (what an unenrolled product looks like). The threshold is the
+``open_set_quantile`` quantile of the genuine sample; ``score`` is the share of the impostor
+sample above the query's statistic. The calibration's poses are the model's (no refinement).
 
 One call at a time: the methods take a lock, so one recognizer can be shared by threads that take
 turns; for parallel queries make one recognizer per thread (they share nothing global).
@@ -43,7 +54,7 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.data.image_files import fit_to_model, load_image_file, pose_in_files
-from matl.geometry import HomographySampler, warp_image
+from matl.geometry import HomographySampler, compose_query_H_canon, warp_image
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
@@ -51,11 +62,13 @@ from matl.inference.recognizer import Prediction, embed
 from matl.inference.recognizer import Recognizer as GalleryRecognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
+from matl.inference.verify import Verification, verify_candidates
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
 from matl.utils.errors import MatlError
 
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model"]
 
+OPEN_SET_STATISTICS = ("verify", "ratio", "distance")
 GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
 PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
 
@@ -75,8 +88,10 @@ class Match:
             image (``H[2, 2] = 1``); None for models without an STN. Given for the nearest plane even
             when ``known`` is False.
         nearest_object, nearest_plane: the nearest plane's labels, also when ``known`` is False.
-        statistic: the open-set statistic of the query (``open_set_statistic``: the distance ratio, or
-            ``distance``), compared with the threshold.
+        statistic: the open-set statistic of the query (``open_set_statistic``: ``verify``, the distance
+            ratio, or ``distance``), compared with the threshold.
+        verification: ``1 - ZNCC`` of the query warped by ``H`` onto the answer's anchor (0: identical
+            up to gain and bias per channel; 1: uncorrelated); NaN without verification.
         gallery_image: the gallery file of the plane (None for a plane added as an array).
         alternatives: the next-nearest *other* products (``top_k - 1`` of them), each as a Match of its
             nearest plane (``anchor`` -1, no ``H``, ``score`` NaN).
@@ -94,6 +109,7 @@ class Match:
     gallery_image: str | None = None
     alternatives: list[Match] = field(default_factory=list)
     statistic: float = float("nan")
+    verification: float = float("nan")
 
 
 @dataclass
@@ -219,9 +235,13 @@ class Recognizer:
         search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
             query gets the nearest product).
-        open_set_statistic: ``ratio`` or ``distance`` (see the module docstring).
+        open_set_statistic: ``verify``, ``ratio`` or ``distance`` (see the module docstring).
         open_set_quantile: with ``auto``, the quantile of the genuine calibration sample used.
         calibration_warps: warped copies per plane for the calibration.
+        verify_top_k: nearest anchors verified per query, until one verifies (0: no verification; then
+            ``verify`` is ``ratio``). Models without an STN have no pose to verify: none.
+        verify_max: the largest ``1 - ZNCC`` that verifies a pose.
+        verify_blur: Gaussian smoothing of both images before the comparison, px.
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -231,7 +251,8 @@ class Recognizer:
                  device: str = "cpu", refine: bool | PhotometricRefiner | FastRefiner | None = False,
                  quantize: str = "none",
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
-                 open_set_statistic: str = "ratio", open_set_quantile: float = 0.94, calibration_warps: int = 8,
+                 open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
+                 verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
                  gallery_fill: float = 1.0,
                  query_fill: float = 1.0, batch_size: int = 64) -> None:
         if quantize not in ("none", "int8"):
@@ -247,9 +268,16 @@ class Recognizer:
         self.quantize = quantize
         self.search = _search_factory(search)
         self.threshold_option = threshold
-        if open_set_statistic not in ("ratio", "distance"):
-            raise MatlError(f"open_set_statistic={open_set_statistic!r} is invalid: use ratio or distance")
+        if open_set_statistic not in OPEN_SET_STATISTICS:
+            raise MatlError(f"open_set_statistic={open_set_statistic!r} is invalid: use verify, ratio or distance")
+        if isinstance(verify_top_k, bool) or not isinstance(verify_top_k, int) or verify_top_k < 0:
+            raise MatlError(f"verify_top_k={verify_top_k!r} is invalid: use an integer >= 0 (0: no verification)")
+        if isinstance(verify_max, bool) or not isinstance(verify_max, (int, float)) or not 0.0 <= verify_max <= 2.0:
+            raise MatlError(f"verify_max={verify_max!r} is invalid: use a 1 - ZNCC level in [0, 2] (e.g. 0.1)")
+        if isinstance(verify_blur, bool) or not isinstance(verify_blur, (int, float)) or not 0.0 <= verify_blur <= 10.0:
+            raise MatlError(f"verify_blur={verify_blur!r} is invalid: use a Gaussian sigma in px in [0, 10]")
         self.open_set_statistic = open_set_statistic
+        self.verify_top_k, self.verify_max, self.verify_blur = int(verify_top_k), float(verify_max), float(verify_blur)
         self.open_set_quantile = float(open_set_quantile)
         self.calibration_warps = int(calibration_warps)
         self.gallery_fill, self.query_fill = float(gallery_fill), float(query_fill)
@@ -393,18 +421,23 @@ class Recognizer:
         self._built = (predictor, gallery)
         return self._built
 
+    def _calibration_images(self, planes: list[_Plane]) -> torch.Tensor:
+        """``(len(planes) * W, 3, S, S)`` the calibration's warped copies of ``planes`` (the training warps,
+        seeded by each plane's name: the same copies every time), plane-major, on the recognizer's device."""
+        options = getattr(self.model, "homography_config", None) or {}
+        sampler = HomographySampler(**{k: v for k, v in dict(options).items() if k != "_target_"})
+        size = (self.image_size, self.image_size)
+        H = torch.cat([sampler.sample(self.calibration_warps, size, torch.Generator().manual_seed(
+            zlib.crc32(f"{plane.object}/{plane.name}".encode()))) for plane in planes]).float()
+        canon = torch.stack([p.canon_u8 for p in planes]).float().div(255.0)
+        return warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
+
     def _calibration_features(self) -> None:
         """Features of warped copies of every plane that has none yet (the training warps; once per plane)."""
         missing = [p for p in self._planes if p.calibration is None]
         if not missing:
             return
-        options = getattr(self.model, "homography_config", None) or {}
-        sampler = HomographySampler(**{k: v for k, v in dict(options).items() if k != "_target_"})
-        size = (self.image_size, self.image_size)
-        H = torch.cat([sampler.sample(self.calibration_warps, size, torch.Generator().manual_seed(
-            zlib.crc32(f"{plane.object}/{plane.name}".encode()))) for plane in missing]).float()
-        canon = torch.stack([p.canon_u8 for p in missing]).float().div(255.0)
-        images = warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
+        images = self._calibration_images(missing)
         inner = self._gallery_recognizer()
         features = torch.cat([inner.embed_queries(images[i:i + 256])[0] for i in range(0, len(images), 256)])
         for plane, chunk in zip(missing, features.float().cpu().split(self.calibration_warps), strict=True):
@@ -430,10 +463,30 @@ class Recognizer:
         out = torch.full((len(features), len(objects)), float("inf"), dtype=torch.float64)
         return out.scatter_reduce(1, owner.expand(len(features), -1), by_plane, reduce="amin"), objects
 
-    def _statistic(self, nearest: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+    def _verifying(self) -> bool:
+        """Whether answers are verified (``verify_top_k`` > 0 and a model with an STN to give a pose)."""
+        return self.verify_top_k > 0 and getattr(self.model, "stn", None) is not None
+
+    def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                exclude_object: torch.Tensor | None = None) -> Verification:
+        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks."""
+        inner, chunks = self._gallery_recognizer(), []
+        for i in range(0, len(queries), 256):
+            part = None if first is None else tuple(t[i:i + 256] for t in first)
+            chunks.append(verify_candidates(inner, queries[i:i + 256], self.verify_top_k, self.verify_max,
+                                            self.verify_blur, part,
+                                            None if exclude_object is None else exclude_object[i:i + 256]))
+        return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
+                              for f in dataclasses.fields(Verification)))
+
+    def _statistic(self, nearest: torch.Tensor, second: torch.Tensor,
+                   verified: torch.Tensor | None = None) -> torch.Tensor:
         if self.open_set_statistic == "distance":
             return nearest
-        return nearest / second.clamp_min(1e-12)
+        ratio = nearest / second.clamp_min(1e-12)
+        if self.open_set_statistic == "verify" and verified is not None:
+            return torch.where(verified.cpu(), torch.zeros_like(ratio), ratio)
+        return ratio
 
     def calibration(self) -> dict[str, torch.Tensor]:
         """Genuine and impostor samples of the open-set statistic (see the module docstring)."""
@@ -443,12 +496,20 @@ class Recognizer:
             own = torch.tensor([self.objects.index(p.object) for p in self._planes
                                 for _ in range(self.calibration_warps)])
             d, objects = self._object_distances(features)               # (M, O)
+            verify = self.open_set_statistic == "verify" and self._verifying()
+            images = self._calibration_images(self._planes) if verify else None
+            # a copy whose answer (against the whole gallery, verified as queries are) verifies: 0; else the
+            # ratio of its nearest product, the answer when nothing verifies
+            genuine_ok = self._verify(images).verified if images is not None else None
+            impostor_ok = None
             ranked = d.sort(1).values
-            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0])
+            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
             impostor = torch.zeros(0, dtype=torch.float64)
             if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
+                if images is not None:
+                    impostor_ok = self._verify(images, exclude_object=own.to(self.device)).verified
                 others = d.scatter(1, own[:, None], float("inf")).sort(1).values
-                impostor = self._statistic(others[:, 0], others[:, 1])
+                impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
             return {"genuine": genuine, "impostor": impostor}
 
     @property
@@ -539,6 +600,10 @@ class Recognizer:
         queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
         pred = recognizer(queries)
+        verification = None
+        if self._verifying() and pred.query_H_anchor is not None:
+            verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
+            pred = self._reranked(pred, verification)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None
@@ -552,21 +617,42 @@ class Recognizer:
         own = torch.tensor([objects.index(self._planes[int(p)].object) for p in plane])
         nearest = by_object.gather(1, own[:, None])[:, 0]
         second = by_object.scatter(1, own[:, None], float("inf")).min(1).values
-        statistic = self._statistic(nearest, second if len(objects) > 1 else nearest)
+        statistic = self._statistic(nearest, second if len(objects) > 1 else nearest,
+                                    None if verification is None else verification.verified)
         alternatives = self._alternatives(features, own, top_k)
         matches = []
         for i in range(len(arrays)):
             matches.append(self._match(int(plane[i]), int(pred.anchor_index[i]), float(pred.distance[i]),
                                        float(statistic[i]), None if H is None else H[i].numpy(), threshold,
-                                       alternatives[i]))
+                                       alternatives[i],
+                                       float("nan") if verification is None else float(verification.distance[i])))
         return matches, pred, queries
 
+    def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
+        """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""
+        device = pred.gallery_index.device
+        index = verification.gallery_index.to(device)
+        changed = index != pred.gallery_index
+        if not bool(changed.any()):
+            return pred
+        g = self.gallery
+        rows = changed[:, None, None]
+        query_H_anchor = torch.where(rows, verification.query_H_anchor.to(device, pred.query_H_anchor.dtype),
+                                     pred.query_H_anchor)
+        query_H_canon = torch.where(rows, compose_query_H_canon(query_H_anchor.double(),
+                                                                g.anchor_H_canon.double()[index]), pred.query_H_canon)
+        distance = torch.where(changed, verification.feature_distance.to(device, pred.distance.dtype), pred.distance)
+        return dataclasses.replace(pred, gallery_index=index, object_index=g.object_index[index],
+                                   plane_index=g.plane_index[index], anchor_index=g.anchor_index[index],
+                                   distance=distance, query_H_anchor=query_H_anchor, query_H_canon=query_H_canon)
+
     def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,
-               threshold: float | None, alternatives: list[Match]) -> Match:
+               threshold: float | None, alternatives: list[Match], verification: float = float("nan")) -> Match:
         p = self._planes[plane]
         known = threshold is None or statistic <= threshold
         return Match(p.object if known else None, p.name if known else None, anchor, distance,
-                     self._score(statistic), known, H, p.object, p.name, p.path, alternatives, statistic)
+                     self._score(statistic), known, H, p.object, p.name, p.path, alternatives, statistic,
+                     verification)
 
     def _alternatives(self, features: torch.Tensor, own: torch.Tensor, top_k: int) -> list[list[Match]]:
         """The ``top_k - 1`` next-nearest other products of each query, each by its nearest plane (no pose)."""

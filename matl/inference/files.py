@@ -53,6 +53,7 @@ def record_of(path: Path, match: Match) -> dict[str, Any]:
         "distance": _finite(match.distance),  # a keypoint baseline has no feature distance: null
         "score": _finite(match.score),  # NaN (no calibration) -> null
         "statistic": _finite(match.statistic),
+        "verification": _finite(match.verification),  # 1 - ZNCC of the answer's pose (null: not verified)
         "H": None if match.H is None else match.H.tolist(),
         "gallery_image": match.gallery_image,
     }
@@ -192,7 +193,9 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     search = instantiate_node(cfg.search, "search") if cfg.get("search") is not None else "exact"
     recognizer = Recognizer.from_checkpoint(
         cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg), search=search,
-        threshold=_threshold(cfg), open_set_quantile=float(cfg.get("open_set_quantile", 0.94)),
+        threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
+        open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
+        verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
         gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:
         raise MatlError(f"checkpoint {cfg.ckpt} was trained at {recognizer.image_size} px, not "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import threading
 from pathlib import Path
 
@@ -124,6 +125,58 @@ def test_open_set_threshold_and_score(tmp_path: Path) -> None:
     assert match.known and 0.0 <= match.score <= 1.0
     with pytest.raises(MatlError, match="open_set_quantile"):
         calibrate_open_set(samples["genuine"], samples["impostor"], 0.0)
+
+
+def product_art(colour: tuple[float, float, float], seed: int) -> np.ndarray:
+    """``GALLERY_HW`` uint8 RGB art of full contrast in every channel (a product's print), mean about ``colour``."""
+    h, w = GALLERY_HW
+    channels = [smooth_texture(h, w, (1.0, 1.0, 1.0), seed * 3 + c)[..., 0] for c in range(3)]
+    pattern = (np.stack(channels, -1) - 0.55) / 0.15  # about [-1, 1] per channel, each its own pattern
+    return (np.clip(0.5 * np.asarray(colour) + 0.25 + 0.25 * pattern, 0, 1) * 255).round().astype(np.uint8)
+
+
+def easy_files(root: Path) -> tuple[Path, Path, torch.Tensor]:
+    """A gallery of four textured products (``GALLERY_HW`` PNGs) and, per product, a query of the same size
+    turned by 10 degrees and shrunk to 0.8 about its centre; returns the folders and the queries'
+    model-frame ``query_H_anchor``."""
+    colours = {**COLOURS, "yellow_tin": (1.0, 0.9, 0.1)}
+    c, s = 0.8 * math.cos(math.radians(10)), 0.8 * math.sin(math.radians(10))
+    h, w = GALLERY_HW
+    centre = np.array([[1, 0, -(w - 1) / 2], [0, 1, -(h - 1) / 2], [0, 0, 1]])
+    H = np.linalg.inv(centre) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ centre
+    gallery, queries = root / "easy_gallery", root / "easy_queries"
+    for k, (name, colour) in enumerate(colours.items()):
+        art = product_art(colour, k)
+        (gallery / name).mkdir(parents=True)
+        queries.mkdir(exist_ok=True)
+        cv2.imwrite(str(gallery / name / "front.png"), art[..., ::-1])
+        query = cv2.warpPerspective(art[..., ::-1], H, (w, h), flags=cv2.INTER_LINEAR)
+        cv2.imwrite(str(queries / f"{name}.png"), query)
+    fit = fit_geometry(h, w, SIZE).model_H_file
+    return gallery, queries, fit @ torch.from_numpy(H) @ torch.linalg.inv(fit)
+
+
+def test_verification_accepts_an_enrolled_product_and_rejects_an_unenrolled_one(tmp_path: Path) -> None:
+    gallery, queries, pose = easy_files(tmp_path)
+    rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model").enrol(gallery)  # auto threshold, statistic verify
+    enrolled = rec.predict(read_rgb(queries / "red_box.png"))
+    # the stub's pose is exact: the query warped onto red_box's anchor correlates with it
+    assert enrolled.known and enrolled.object == "red_box" and enrolled.verification < rec.verify_max
+    assert enrolled.statistic == 0.0 and enrolled.score == 1.0
+    rec.remove("green_can")
+    unenrolled = rec.predict(read_rgb(queries / "green_can.png"), top_k=2)
+    # no candidate verifies: the statistic is the ratio of the two nearest products' distances
+    assert unenrolled.verification > rec.verify_max
+    assert unenrolled.statistic == pytest.approx(unenrolled.distance / unenrolled.alternatives[0].distance)
+    assert unenrolled.statistic > rec.threshold and not unenrolled.known and unenrolled.object is None
+    # the same query with the plain ratio and verification off: the same statistic, no verification
+    plain = Recognizer(StubModel(pose), SIZE, 1, "stub-model", open_set_statistic="ratio", verify_top_k=0)
+    plain.enrol(gallery).remove("green_can")
+    answer = plain.predict(read_rgb(queries / "green_can.png"))
+    assert answer.statistic == pytest.approx(unenrolled.statistic) and math.isnan(answer.verification)
+    for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"}):
+        with pytest.raises(MatlError, match=next(iter(bad))):
+            stub_recognizer(**bad)
 
 
 def test_calibration_by_hand() -> None:

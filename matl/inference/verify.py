@@ -1,0 +1,201 @@
+"""Photometric verification of a recognised query: does the query, warped into the selected anchor's
+frame by the predicted pose, look like the anchor?
+
+The embedding distance says how close ``c(s(query))`` is to ``c(anchor)``; an unenrolled product can
+still land near some enrolled one. Once the pose is known the two images can be compared pixel by
+pixel: the query is warped into the anchor frame with ``anchor_H_query = inv(query_H_anchor)`` and
+compared with the anchor over the anchor's foreground (its non-zero pixels: the canonical images are
+zero outside the plane) where the warped query has data. The comparison is the zero-mean normalised
+cross-correlation (ZNCC, :func:`zncc`): invariant to a gain and a bias per channel (exposure, white
+balance), 1 for a perfect match, about 0 for unrelated content. Both images are first smoothed by a
+Gaussian of ``blur_sigma`` px (a pose off by a pixel or two, and a query resampled from another
+scale, keep their correlation). The open-set statistic built on it is ``1 - ZNCC`` (lower: more
+alike), see :mod:`matl.inference.api`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from kornia.filters import gaussian_blur2d
+
+from matl.geometry import warp_image
+
+__all__ = ["Verification", "aligned_queries", "anchor_foreground", "verification_distance", "verify_candidates",
+           "zncc"]
+
+#: smallest foreground (pixels) a comparison needs; below it the pair counts as unrelated (ZNCC 0)
+MIN_PIXELS = 16
+
+
+def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
+    """``(B, 1, S, S)`` bool: the anchors' plane, pixels with any non-zero channel, eroded by ``erode`` px
+    (the edge pixels mix plane and background).
+
+    Args:
+        anchors: ``(B, 3, S, S)`` float anchor images (zero outside the plane).
+    """
+    mask = (anchors.amax(1, keepdim=True) > 0).float()
+    if erode > 0:
+        mask = -F.max_pool2d(-mask, 2 * erode + 1, stride=1, padding=erode)
+    return mask > 0.5
+
+
+def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The queries in their anchors' frames: ``(warped (B, 3, S, S), valid (B, 1, S, S) bool)``.
+
+    Args:
+        queries: ``(B, 3, S, S)`` model-size query images.
+        query_H_anchor: ``(B, 3, 3)`` pixel homographies, anchor pixel -> query pixel.
+    Returns:
+        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query.
+    """
+    anchor_H_query = torch.linalg.inv(query_H_anchor.double()).to(queries.dtype)
+    ones = torch.ones_like(queries[:, :1])
+    warped = warp_image(torch.cat([queries, ones], 1), anchor_H_query)
+    return warped[:, :3], warped[:, 3:] > 0.999
+
+
+def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Zero-mean normalised cross-correlation of ``a`` and ``b`` over ``mask``, channels pooled.
+
+    Each channel of each image loses its mean over the mask (a bias per channel); the correlation is
+    ``sum(a' b') / sqrt(sum(a'^2) sum(b'^2))`` over mask pixels and channels (a common gain drops out;
+    channels keep their relative contrast). Pairs with fewer than :data:`MIN_PIXELS` mask pixels or
+    a flat image get 0.
+
+    Args:
+        a, b: ``(B, C, H, W)``; mask: ``(B, 1, H, W)`` bool.
+    Returns:
+        ``(B,)`` float64 in [-1, 1].
+    """
+    m = mask.double()
+    count = m.sum((1, 2, 3))
+    a, b = a.double(), b.double()
+    mean_a = (a * m).sum((2, 3), keepdim=True) / count.clamp_min(1)[:, None, None, None]
+    mean_b = (b * m).sum((2, 3), keepdim=True) / count.clamp_min(1)[:, None, None, None]
+    da, db = (a - mean_a) * m, (b - mean_b) * m
+    num = (da * db).sum((1, 2, 3))
+    den = ((da * da).sum((1, 2, 3)) * (db * db).sum((1, 2, 3))).sqrt()
+    ok = (count >= MIN_PIXELS) & (den > 1e-12)
+    return torch.where(ok, num / den.clamp_min(1e-12), torch.zeros_like(num))
+
+
+def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
+                          blur_sigma: float = 1.0, erode: int = 1) -> torch.Tensor:
+    """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
+
+    Args:
+        queries: ``(B, 3, S, S)`` model-size queries; query_H_anchor: ``(B, 3, 3)`` pixel, anchor -> query;
+        anchors: ``(B, 3, S, S)`` the selected anchor of each query.
+        blur_sigma: Gaussian smoothing of both images before the comparison, px (0: none).
+        erode: the anchor's foreground is eroded by this many px.
+    Returns:
+        ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
+    """
+    if len(queries) == 0:
+        return torch.zeros(0, dtype=torch.float64)
+    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device))
+    anchors = anchors.float()
+    mask = anchor_foreground(anchors, erode) & valid
+    if blur_sigma > 0:
+        k = 2 * round(3 * blur_sigma) + 1
+        warped = gaussian_blur2d(warped, (k, k), (blur_sigma, blur_sigma))
+        anchors = gaussian_blur2d(anchors, (k, k), (blur_sigma, blur_sigma))
+    return (1.0 - zncc(warped, anchors, mask)).cpu()
+
+
+@dataclass
+class Verification:
+    """The verified answer of each query.
+
+    Attributes:
+        gallery_index: ``(Q,)`` int64 the chosen gallery anchor: the first candidate, nearest first, whose
+            pose verifies, else the nearest one.
+        query_H_anchor: ``(Q, 3, 3)`` pixel pose against it.
+        feature_distance: ``(Q,)`` ``||c(anchor) - c(s(query))||`` of the chosen anchor.
+        distance: ``(Q,)`` float64 ``1 - ZNCC`` of the chosen anchor (:func:`verification_distance`).
+        verified: ``(Q,)`` bool, ``distance <= verify_max``.
+        tried: ``(Q,)`` int64 candidates compared.
+    """
+
+    gallery_index: torch.Tensor
+    query_H_anchor: torch.Tensor
+    feature_distance: torch.Tensor
+    distance: torch.Tensor
+    verified: torch.Tensor
+    tried: torch.Tensor
+
+
+@torch.no_grad()
+def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
+                      first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                      exclude_object: torch.Tensor | None = None) -> Verification:
+    """Verify the ``top_k`` nearest gallery anchors of each query, nearest first, until one verifies.
+
+    A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
+    the alignment stage against that candidate (when the model has one), and verified by
+    :func:`verification_distance`. The first candidate whose ``1 - ZNCC`` is at most ``verify_max`` is
+    the answer; a query none of whose candidates verifies keeps its nearest anchor.
+
+    Args:
+        recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
+        queries: ``(Q, 3, S, S)`` model-size queries on the recognizer's device.
+        top_k: candidates per query (>= 1).
+        verify_max: the largest ``1 - ZNCC`` that verifies.
+        first: ``(gallery_index (Q,), query_H_anchor (Q, 3, 3), feature distance (Q,))`` of an answer
+            already computed (the recognizer's own, possibly refined), verified first and counted as
+            the nearest candidate; None: every candidate comes from the search here.
+        exclude_object: ``(Q,)`` object index per query whose anchors are not candidates (the open-set
+            calibration's impostors), or None.
+    """
+    g = recognizer.gallery
+    n = len(queries)
+    index = torch.zeros(n, dtype=torch.long)
+    pose = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
+    feature_distance = torch.zeros(n, dtype=torch.float64)
+    distance = torch.full((n,), 2.0, dtype=torch.float64)
+    tried = torch.zeros(n, dtype=torch.long)
+    done = torch.zeros(n, dtype=torch.bool)
+    if first is not None:
+        index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
+        distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma)
+        done, tried = distance <= verify_max, torch.ones(n, dtype=torch.long)
+    todo = torch.nonzero(~done).flatten()
+    if len(todo) == 0 or (first is not None and top_k <= 1):
+        return Verification(index, pose, feature_distance, distance, done, tried)
+    x = queries[todo]
+    features, stn_H, _, warped = recognizer.embed_queries(x)
+    if stn_H is None:
+        raise ValueError("verification needs a pose: the model has no STN")
+    d = torch.cdist(features.double(), recognizer.gallery_features.double())  # (T, G)
+    if exclude_object is not None:
+        d = d.masked_fill(g.object_index.cpu()[None, :].to(d.device) == exclude_object[todo, None].to(d.device),
+                          float("inf"))
+    if first is not None:  # the answer already verified above is not tried again
+        d = d.scatter(1, index[todo, None].to(d.device), float("inf"))
+    k = min(top_k - (first is not None), d.shape[1])
+    cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
+    open_ = torch.ones(len(todo), dtype=torch.bool)
+    for j in range(k):
+        rows = torch.nonzero(open_ & torch.isfinite(cand_d[:, j]).cpu()).flatten()
+        if len(rows) == 0:
+            break
+        anchors = g.images[cand[rows, j]]
+        H = stn_H[rows]
+        if getattr(recognizer, "align", None) is not None:
+            H = recognizer.align.infer(x[rows], anchors, H, warped[rows]).query_H_anchor
+        v = verification_distance(x[rows], H, anchors, blur_sigma)
+        at = todo[rows]
+        tried[at] += 1
+        better = (v <= verify_max) | ((first is None) & (j == 0))  # no answer yet: the nearest is the default
+        chosen = rows[better]
+        index[todo[chosen]] = cand[chosen, j].cpu()
+        pose[todo[chosen]] = H[better].cpu().double()
+        feature_distance[todo[chosen]] = cand_d[chosen, j].cpu()
+        distance[todo[chosen]] = v[better]
+        open_[rows[v <= verify_max]] = False
+    return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
