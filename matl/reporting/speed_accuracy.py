@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from matl.reporting.figures import _pyplot, _save
+from matl.reporting.figures import _pyplot
 from matl.utils.errors import MatlError
 
 __all__ = ["METHOD_LABELS", "methods_table", "plot_speed_accuracy", "timed_methods"]
@@ -45,7 +45,8 @@ def timed_methods(table: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 def plot_speed_accuracy(table: Mapping[str, Mapping[str, Any]], path: str | Path, title: str) -> Path:
     """The speed x accuracy plane of one condition: x ``query_ms`` (log), y ``pose_acc_5px`` (left) and
-    ``rec_acc`` (right), one labelled point per timed method; MATL's methods filled, the baselines hollow.
+    ``rec_acc`` (right), one point per timed method (a shared legend below); MATL's methods filled circles,
+    the baselines hollow markers.
 
     Args:
         table: ``{method: {rec_acc, corner_err_px_median, pose_acc_5px, query_ms}}`` (``benchmark.json``'s
@@ -61,26 +62,35 @@ def plot_speed_accuracy(table: Mapping[str, Mapping[str, Any]], path: str | Path
         raise MatlError("no method has a query_ms to place on the speed x accuracy plane: time them (matl.unseen "
                         "timing.queries > 0)")
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(Y_METRICS), figsize=(5.2 * len(Y_METRICS), 4.2))
+    fig, axes = plt.subplots(1, len(Y_METRICS), figsize=(5.2 * len(Y_METRICS), 4.6))
     xs = [float(table[m]["query_ms"]) for m in methods]
+    colours = plt.get_cmap("tab10").colors
     for ax, (metric, label) in zip(axes, Y_METRICS.items(), strict=True):
-        for m, x in zip(methods, xs, strict=True):
+        ys = []
+        for i, (m, x) in enumerate(zip(methods, xs, strict=True)):
             y = _number(table[m].get(metric))
             if y is None:
                 continue
-            ours = m.startswith("matl")
-            ax.scatter([x], [y], s=60, marker="o" if ours else "s", zorder=3,
-                       facecolors="tab:blue" if ours else "none", edgecolors="tab:blue" if ours else "tab:red")
-            ax.annotate(METHOD_LABELS.get(m, m), (x, y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+            ys.append(y)
+            ours = m.startswith("matl")  # MATL's methods filled circles, the baselines hollow markers
+            colour = colours[i % len(colours)]
+            ax.scatter([x], [y], s=70, marker="o" if ours else "sD^vP*X"[i % 7], zorder=3, linewidths=1.5,
+                       facecolors=colour if ours else "none", edgecolors=colour, label=METHOD_LABELS.get(m, m))
         ax.set_xscale("log")
-        ax.set_xlim(min(xs) / 2.0, max(xs) * 4.0)  # room for the labels on the right
-        ax.set_ylim(-0.02, 1.05)
+        ax.set_xlim(min(xs) / 2.0, max(xs) * 2.0)
+        low = min(ys, default=0.0)
+        ax.set_ylim(max(0.0, low - 0.1), 1.02)  # the methods' range, not all of [0, 1]
         ax.set_xlabel("query_ms (batch of 1, log scale)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=8, frameon=False)
+    fig.subplots_adjust(bottom=0.27)
     fig.suptitle(title, fontsize=9)
     out = Path(path)
-    _save(fig, out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=150)  # not tight_layout: it would drop the room kept for the legend
+    plt.close(fig)
     return out
 
 

@@ -203,7 +203,8 @@ def test_training_refuses_the_heldout_photos(tmp_path: Path) -> None:
 @pytest.mark.parametrize("override,match", [
     ("condition=foggy", "condition=foggy is invalid: use one or a list of clean, photometric, mask, clutter, view, "
                         "sizes or all"),
-    ("methods=[matl,orb]", r"methods=\['matl', 'orb'\] is invalid: use a list of matl, matl_refine, sift, sift_ecc"),
+    ("methods=[matl,orb]", r"methods=\['matl', 'orb'\] is invalid: use a list of matl, matl_refine, sift, sift_ecc, "
+                           "lightglue, xfeat, xfeat_lighterglue$"),
     ("methods=[]", "methods=.* is invalid"),
     ("sizes.query=8", "sizes.query=8 is invalid"),
     ("photometric.gain=[2.0,1.0]", r"photometric.gain=\[2.0, 1.0\] is invalid: use \[low, high\]"),
@@ -220,6 +221,9 @@ def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
     common = ["ckpt=c", "threshold=null"]
     assert predict_args("matl_refine", common) == [*common, "refine=true"]
     assert predict_args("sift_ecc", common) == ["ckpt=c", "baseline=sift_ecc", "threshold=null"]
+    assert predict_args("xfeat_lighterglue", common) == ["ckpt=c", "baseline=xfeat_lighterglue", "threshold=null"]
+    assert _check(_cfg(tmp_path, "methods=[matl,lightglue,xfeat,xfeat_lighterglue]"))[1] == [
+        "matl", "lightglue", "xfeat", "xfeat_lighterglue"]
     assert method_overrides("sift") == []  # called as a function: no command-line overrides
 
 
