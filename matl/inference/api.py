@@ -69,6 +69,7 @@ from matl.utils.errors import MatlError
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model"]
 
 OPEN_SET_STATISTICS = ("verify", "ratio", "distance")
+VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
 GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
 PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
 
@@ -470,12 +471,12 @@ class Recognizer:
     def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 exclude_object: torch.Tensor | None = None) -> Verification:
         """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks."""
-        inner, chunks = self._gallery_recognizer(), []
-        for i in range(0, len(queries), 256):
-            part = None if first is None else tuple(t[i:i + 256] for t in first)
-            chunks.append(verify_candidates(inner, queries[i:i + 256], self.verify_top_k, self.verify_max,
+        inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
+        for i in range(0, len(queries), step):
+            part = None if first is None else tuple(t[i:i + step] for t in first)
+            chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
                                             self.verify_blur, part,
-                                            None if exclude_object is None else exclude_object[i:i + 256]))
+                                            None if exclude_object is None else exclude_object[i:i + step]))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 

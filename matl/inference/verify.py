@@ -16,13 +16,13 @@ alike), see :mod:`matl.inference.api`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
 
-from matl.geometry import warp_image
+from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["Verification", "aligned_queries", "anchor_foreground", "verification_distance", "verify_candidates",
            "zncc"]
@@ -53,10 +53,29 @@ def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor) -> tupl
     Returns:
         ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query.
     """
-    anchor_H_query = torch.linalg.inv(query_H_anchor.double()).to(queries.dtype)
+    query_H_anchor_norm = pixel_to_normalised(query_H_anchor.double(), tuple(queries.shape[-2:]))
     ones = torch.ones_like(queries[:, :1])
-    warped = warp_image(torch.cat([queries, ones], 1), anchor_H_query)
+    warped = sample_by_normalised(torch.cat([queries, ones], 1), query_H_anchor_norm)
     return warped[:, :3], warped[:, 3:] > 0.999
+
+
+@lru_cache(maxsize=8)
+def _gaussian_kernel(sigma: float) -> torch.Tensor:
+    """``(K,)`` the normalised 1-D Gaussian of ``sigma`` px, ``K = 2 round(3 sigma) + 1`` taps."""
+    radius = round(3 * sigma)
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    kernel = torch.exp(-x * x / (2.0 * sigma * sigma))
+    return kernel / kernel.sum()
+
+
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``(B, C, H, W)`` images smoothed by a separable Gaussian of ``sigma`` px, borders reflected (the
+    same as kornia's ``gaussian_blur2d`` with that kernel size, in two small convolutions)."""
+    kernel = _gaussian_kernel(float(sigma)).to(images.device, images.dtype)
+    channels, radius = images.shape[1], len(kernel) // 2
+    x = F.pad(images, (radius, radius, radius, radius), mode="reflect")
+    x = F.conv2d(x, kernel.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
+    return F.conv2d(x, kernel.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
 
 
 def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -101,10 +120,8 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
     warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device))
     anchors = anchors.float()
     mask = anchor_foreground(anchors, erode) & valid
-    if blur_sigma > 0:
-        k = 2 * round(3 * blur_sigma) + 1
-        warped = gaussian_blur2d(warped, (k, k), (blur_sigma, blur_sigma))
-        anchors = gaussian_blur2d(anchors, (k, k), (blur_sigma, blur_sigma))
+    if blur_sigma > 0:  # one call for both
+        warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
     return (1.0 - zncc(warped, anchors, mask)).cpu()
 
 
@@ -119,7 +136,7 @@ class Verification:
         feature_distance: ``(Q,)`` ``||c(anchor) - c(s(query))||`` of the chosen anchor.
         distance: ``(Q,)`` float64 ``1 - ZNCC`` of the chosen anchor (:func:`verification_distance`).
         verified: ``(Q,)`` bool, ``distance <= verify_max``.
-        tried: ``(Q,)`` int64 candidates compared.
+        tried: ``(Q,)`` int64 candidates compared (including ``first``).
     """
 
     gallery_index: torch.Tensor
@@ -134,12 +151,14 @@ class Verification:
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                       exclude_object: torch.Tensor | None = None) -> Verification:
-    """Verify the ``top_k`` nearest gallery anchors of each query, nearest first, until one verifies.
+    """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
     the alignment stage against that candidate (when the model has one), and verified by
     :func:`verification_distance`. The first candidate whose ``1 - ZNCC`` is at most ``verify_max`` is
-    the answer; a query none of whose candidates verifies keeps its nearest anchor.
+    the answer; a query none of whose candidates verifies keeps its nearest anchor. A query whose
+    given answer (``first``) verifies needs nothing more; the candidates of the others are posed and
+    compared in one batch (a handful of calls however many candidates: cheaper than one at a time).
 
     Args:
         recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
@@ -179,23 +198,25 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
         d = d.scatter(1, index[todo, None].to(d.device), float("inf"))
     k = min(top_k - (first is not None), d.shape[1])
     cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
-    open_ = torch.ones(len(todo), dtype=torch.bool)
-    for j in range(k):
-        rows = torch.nonzero(open_ & torch.isfinite(cand_d[:, j]).cpu()).flatten()
-        if len(rows) == 0:
-            break
-        anchors = g.images[cand[rows, j]]
-        H = stn_H[rows]
-        if getattr(recognizer, "align", None) is not None:
-            H = recognizer.align.infer(x[rows], anchors, H, warped[rows]).query_H_anchor
-        v = verification_distance(x[rows], H, anchors, blur_sigma)
-        at = todo[rows]
-        tried[at] += 1
-        better = (v <= verify_max) | ((first is None) & (j == 0))  # no answer yet: the nearest is the default
-        chosen = rows[better]
-        index[todo[chosen]] = cand[chosen, j].cpu()
-        pose[todo[chosen]] = H[better].cpu().double()
-        feature_distance[todo[chosen]] = cand_d[chosen, j].cpu()
-        distance[todo[chosen]] = v[better]
-        open_[rows[v <= verify_max]] = False
+    usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
+    t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
+    anchors = g.images[cand[t, j]]
+    H = stn_H[t]
+    if getattr(recognizer, "align", None) is not None:
+        H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
+    v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
+    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma)
+    poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
+    poses[t, j] = H.cpu().double()
+    ok = v <= verify_max
+    # the first candidate, nearest first, that verifies; with no answer given and none verifying, the nearest
+    pick = torch.where(ok.any(1), ok.to(torch.int8).argmax(1), torch.zeros(len(todo), dtype=torch.long))
+    take = ok.any(1) | (first is None)
+    rows = torch.nonzero(take & usable[:, 0]).flatten()
+    at, col = todo[rows], pick[rows]
+    index[at] = cand[rows, col].cpu()
+    pose[at] = poses[rows, col]
+    feature_distance[at] = cand_d[rows, col].cpu().double()
+    distance[at] = v[rows, col]
+    tried[todo] += usable.sum(1)
     return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
