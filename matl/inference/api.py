@@ -18,21 +18,22 @@ frame, its zero-mean normalised cross-correlation (ZNCC) with the anchor over th
 near 1 when the product and the pose are right. The nearest anchor is verified first; when ``1 -
 ZNCC`` exceeds ``verify_max`` the next-nearest anchors (up to ``verify_top_k``, any product, plane
 or rotation, each posed by the STN and the alignment stage) are tried in turn, and the first that
-verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays.
+verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays. The
+query's empty pixels (all channels 0: the transparent part of an RGBA query) are not compared.
 
 Open set: a query whose statistic exceeds :attr:`Recognizer.threshold` is answered ``known=False``
 (``object`` None). The statistic (``open_set_statistic``) is ``verify`` (default): 0 when the
-answer's pose verifies, else ``ratio``; ``ratio``: the distance to the nearest anchor of the
-answer's product over the distance to the nearest anchor of any *other* product (a query of an
-enrolled product is much closer to it than to anything else; an unenrolled product is about as far
-from its two nearest products); or ``distance``: the answer's nearest-anchor distance itself. With
-``threshold="auto"`` the threshold is calibrated on the gallery alone (:func:`calibrate_open_set`):
-warped copies of every enrolled plane (the training warps) are recognised against the whole
-gallery, their statistics are the *genuine* sample, and against the gallery without their own
-product (its nearest other products; with ``verify``, their candidates verified the same way) the
-*impostor* sample (what an unenrolled product looks like). The threshold is the
-``open_set_quantile`` quantile of the genuine sample; ``score`` is the share of the impostor
-sample above the query's statistic. The calibration's poses are the model's (no refinement).
+answer's pose verifies, else ``ratio``, so a verified answer is always known and the others are
+judged by the ratio; ``ratio``: the distance to the nearest anchor of the answer's product over the
+distance to the nearest anchor of any *other* product (a query of an enrolled product is much closer
+to it than to anything else; an unenrolled product is about as far from its two nearest products);
+or ``distance``: the answer's nearest-anchor distance itself. With ``threshold="auto"`` the
+threshold is calibrated on the gallery alone (:func:`calibrate_open_set`): warped copies of every
+enrolled plane (the training warps) are embedded; their statistic against the whole gallery is the
+*genuine* sample, and against the gallery without their own product the *impostor* sample (what an
+unenrolled product looks like); for ``verify`` both are the ratio's (verification only ever
+accepts, and the copies need no pose). The threshold is the ``open_set_quantile`` quantile of the
+genuine sample; ``score`` is the share of the impostor sample above the query's statistic.
 
 One call at a time: the methods take a lock, so one recognizer can be shared by threads that take
 turns; for parallel queries make one recognizer per thread (they share nothing global).
@@ -252,7 +253,7 @@ class Recognizer:
                  device: str = "cpu", refine: bool | PhotometricRefiner | FastRefiner | None = False,
                  quantize: str = "none",
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
-                 open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
+                 open_set_statistic: str = "verify", open_set_quantile: float = 0.88, calibration_warps: int = 8,
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
                  gallery_fill: float = 1.0,
                  query_fill: float = 1.0, batch_size: int = 64) -> None:
@@ -468,15 +469,13 @@ class Recognizer:
         """Whether answers are verified (``verify_top_k`` > 0 and a model with an STN to give a pose)."""
         return self.verify_top_k > 0 and getattr(self.model, "stn", None) is not None
 
-    def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                exclude_object: torch.Tensor | None = None) -> Verification:
-        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks."""
+    def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> Verification:
+        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
+        queries' empty (all-zero: transparent) pixels are left out of the comparison."""
         inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
         for i in range(0, len(queries), step):
-            part = None if first is None else tuple(t[i:i + step] for t in first)
             chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
-                                            self.verify_blur, part,
-                                            None if exclude_object is None else exclude_object[i:i + step]))
+                                            self.verify_blur, tuple(t[i:i + step] for t in first), skip_empty=True))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 
@@ -497,20 +496,12 @@ class Recognizer:
             own = torch.tensor([self.objects.index(p.object) for p in self._planes
                                 for _ in range(self.calibration_warps)])
             d, objects = self._object_distances(features)               # (M, O)
-            verify = self.open_set_statistic == "verify" and self._verifying()
-            images = self._calibration_images(self._planes) if verify else None
-            # a copy whose answer (against the whole gallery, verified as queries are) verifies: 0; else the
-            # ratio of its nearest product, the answer when nothing verifies
-            genuine_ok = self._verify(images).verified if images is not None else None
-            impostor_ok = None
-            ranked = d.sort(1).values
-            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
+            ranked = d.sort(1).values  # verify: the ratio's samples (verification only ever accepts)
+            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0])
             impostor = torch.zeros(0, dtype=torch.float64)
             if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
-                if images is not None:
-                    impostor_ok = self._verify(images, exclude_object=own.to(self.device)).verified
                 others = d.scatter(1, own[:, None], float("inf")).sort(1).values
-                impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
+                impostor = self._statistic(others[:, 0], others[:, 1])
             return {"genuine": genuine, "impostor": impostor}
 
     @property

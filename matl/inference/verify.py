@@ -44,18 +44,22 @@ def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
     return mask > 0.5
 
 
-def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor,
+                    skip_empty: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The queries in their anchors' frames: ``(warped (B, 3, S, S), valid (B, 1, S, S) bool)``.
 
     Args:
         queries: ``(B, 3, S, S)`` model-size query images.
         query_H_anchor: ``(B, 3, 3)`` pixel homographies, anchor pixel -> query pixel.
+        skip_empty: also count as invalid what comes from query pixels that are 0 in every channel (the
+            transparent part of an RGBA query, set to 0 when it was read: no data, not black print).
     Returns:
-        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query.
+        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query (and, with
+        ``skip_empty``, only among non-empty pixels).
     """
     query_H_anchor_norm = pixel_to_normalised(query_H_anchor.double(), tuple(queries.shape[-2:]))
-    ones = torch.ones_like(queries[:, :1])
-    warped = sample_by_normalised(torch.cat([queries, ones], 1), query_H_anchor_norm)
+    data = (queries.amax(1, keepdim=True) > 0).to(queries.dtype) if skip_empty else torch.ones_like(queries[:, :1])
+    warped = sample_by_normalised(torch.cat([queries, data], 1), query_H_anchor_norm)
     return warped[:, :3], warped[:, 3:] > 0.999
 
 
@@ -104,7 +108,7 @@ def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
-                          blur_sigma: float = 1.0, erode: int = 1) -> torch.Tensor:
+                          blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False) -> torch.Tensor:
     """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
 
     Args:
@@ -112,12 +116,13 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         anchors: ``(B, 3, S, S)`` the selected anchor of each query.
         blur_sigma: Gaussian smoothing of both images before the comparison, px (0: none).
         erode: the anchor's foreground is eroded by this many px.
+        skip_empty: leave out what comes from the query's empty (all-zero) pixels (:func:`aligned_queries`).
     Returns:
         ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
     """
     if len(queries) == 0:
         return torch.zeros(0, dtype=torch.float64)
-    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device))
+    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device), skip_empty)
     anchors = anchors.float()
     mask = anchor_foreground(anchors, erode) & valid
     if blur_sigma > 0:  # one call for both
@@ -150,53 +155,53 @@ class Verification:
 @torch.no_grad()
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                      exclude_object: torch.Tensor | None = None) -> Verification:
+                      exclude_object: torch.Tensor | None = None, skip_empty: bool = False) -> Verification:
     """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
     the alignment stage against that candidate (when the model has one), and verified by
     :func:`verification_distance`. The first candidate whose ``1 - ZNCC`` is at most ``verify_max`` is
-    the answer; a query none of whose candidates verifies keeps its nearest anchor. A query whose
-    given answer (``first``) verifies needs nothing more; the candidates of the others are posed and
-    compared in one batch (a handful of calls however many candidates: cheaper than one at a time).
+    the answer; a query none of whose candidates verifies keeps its nearest anchor. The nearest
+    candidate is verified first; only the queries it does not verify go on, their other candidates
+    posed and compared in one batch (a handful of calls however many candidates).
 
     Args:
         recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
         queries: ``(Q, 3, S, S)`` model-size queries on the recognizer's device.
         top_k: candidates per query (>= 1).
         verify_max: the largest ``1 - ZNCC`` that verifies.
+        blur_sigma, skip_empty: as :func:`verification_distance`'s.
         first: ``(gallery_index (Q,), query_H_anchor (Q, 3, 3), feature distance (Q,))`` of an answer
-            already computed (the recognizer's own, possibly refined), verified first and counted as
-            the nearest candidate; None: every candidate comes from the search here.
+            already computed (the recognizer's own, possibly refined), taken as the nearest candidate;
+            None: the nearest candidate comes from the search here.
         exclude_object: ``(Q,)`` object index per query whose anchors are not candidates (the open-set
             calibration's impostors), or None.
     """
     g = recognizer.gallery
     n = len(queries)
-    index = torch.zeros(n, dtype=torch.long)
-    pose = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
-    feature_distance = torch.zeros(n, dtype=torch.float64)
-    distance = torch.full((n,), 2.0, dtype=torch.float64)
-    tried = torch.zeros(n, dtype=torch.long)
-    done = torch.zeros(n, dtype=torch.bool)
-    if first is not None:
-        index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
-        distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma)
-        done, tried = distance <= verify_max, torch.ones(n, dtype=torch.long)
-    todo = torch.nonzero(~done).flatten()
-    if len(todo) == 0 or (first is not None and top_k <= 1):
-        return Verification(index, pose, feature_distance, distance, done, tried)
+    embedded = None
+    if first is None:  # the nearest (allowed) anchor, posed as the recognizer poses it
+        embedded = _candidate_distances(recognizer, queries, exclude_object)
+        _, stn_H, warped, d = embedded
+        nearest_d, nearest = d.min(1)
+        H = stn_H
+        if getattr(recognizer, "align", None) is not None:
+            H = recognizer.align.infer(queries, g.images[nearest], stn_H, warped).query_H_anchor
+        first = (nearest, H, nearest_d)
+    index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
+    distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma, skip_empty=skip_empty)
+    tried = torch.ones(n, dtype=torch.long)
+    todo = torch.nonzero(distance > verify_max).flatten()
+    if len(todo) == 0 or top_k <= 1:
+        return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
     x = queries[todo]
-    features, stn_H, _, warped = recognizer.embed_queries(x)
-    if stn_H is None:
-        raise ValueError("verification needs a pose: the model has no STN")
-    d = torch.cdist(features.double(), recognizer.gallery_features.double())  # (T, G)
-    if exclude_object is not None:
-        d = d.masked_fill(g.object_index.cpu()[None, :].to(d.device) == exclude_object[todo, None].to(d.device),
-                          float("inf"))
-    if first is not None:  # the answer already verified above is not tried again
-        d = d.scatter(1, index[todo, None].to(d.device), float("inf"))
-    k = min(top_k - (first is not None), d.shape[1])
+    if embedded is None:
+        _, stn_H, warped, d = _candidate_distances(recognizer, x, None if exclude_object is None else
+                                                   exclude_object[todo])
+    else:
+        stn_H, warped, d = stn_H[todo], warped[todo], d[todo]
+    d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
+    k = min(top_k - 1, d.shape[1])
     cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
     usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
     t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
@@ -205,18 +210,30 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     if getattr(recognizer, "align", None) is not None:
         H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
     v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
-    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma)
+    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, skip_empty=skip_empty)
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
     poses[t, j] = H.cpu().double()
     ok = v <= verify_max
-    # the first candidate, nearest first, that verifies; with no answer given and none verifying, the nearest
-    pick = torch.where(ok.any(1), ok.to(torch.int8).argmax(1), torch.zeros(len(todo), dtype=torch.long))
-    take = ok.any(1) | (first is None)
-    rows = torch.nonzero(take & usable[:, 0]).flatten()
-    at, col = todo[rows], pick[rows]
+    rows = torch.nonzero(ok.any(1)).flatten()      # the first that verifies, nearest first
+    col = ok[rows].to(torch.int8).argmax(1)
+    at = todo[rows]
     index[at] = cand[rows, col].cpu()
     pose[at] = poses[rows, col]
     feature_distance[at] = cand_d[rows, col].cpu().double()
     distance[at] = v[rows, col]
     tried[todo] += usable.sum(1)
     return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
+
+
+def _candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(features, STN query_H_anchor, s(queries), distances (Q, G) to every anchor)``; anchors of
+    ``exclude_object`` at infinity."""
+    features, stn_H, _, warped = recognizer.embed_queries(queries)
+    if stn_H is None:
+        raise ValueError("verification needs a pose: the model has no STN")
+    d = torch.cdist(features.double(), recognizer.gallery_features.double())
+    if exclude_object is not None:
+        own = recognizer.gallery.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
+        d = d.masked_fill(own, float("inf"))
+    return features, stn_H, warped, d

@@ -120,7 +120,8 @@ def test_open_set_threshold_and_score(tmp_path: Path) -> None:
     auto = stub_recognizer().enrol(gallery)
     samples = auto.calibration()
     assert len(samples["genuine"]) == 3 * auto.calibration_warps and len(samples["impostor"]) == len(samples["genuine"])
-    assert auto.threshold == pytest.approx(calibrate_open_set(samples["genuine"], samples["impostor"], 0.94))
+    assert auto.threshold == pytest.approx(calibrate_open_set(samples["genuine"], samples["impostor"],
+                                                                    auto.open_set_quantile))
     match = auto.predict(query)
     assert match.known and 0.0 <= match.score <= 1.0
     with pytest.raises(MatlError, match="open_set_quantile"):
