@@ -408,7 +408,7 @@ def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, 
 
     if method in ("matl", "matl_refine"):
         node = OmegaConf.create({"ckpt": str(ckpt), "device": cfg.device, "refine": method == "matl_refine",
-                                 "threshold": threshold, "open_set_quantile": cfg.get("open_set_quantile", 0.88),
+                                 "threshold": threshold, "open_set_quantile": cfg.get("open_set_quantile", 0.94),
                                  **{key: cfg.get(key, default) for key, default in OPEN_SET_KEYS.items()},
                                  "gallery_fill": gallery_fill, "query_fill": query_fill, "batch_size": 1,
                                  "quantize": "none"})
@@ -566,7 +566,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     common = [_arg("ckpt", ckpt_path), _arg("gallery", out / "gallery"), _arg("images", out / "queries"),
               _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill), _arg("batch_size", cfg.batch_size),
               _arg("device", cfg.device), _arg("threshold", "null" if threshold is None else threshold),
-              _arg("open_set_quantile", cfg.get("open_set_quantile", 0.88)), *open_set_args(cfg)]
+              _arg("open_set_quantile", cfg.get("open_set_quantile", 0.94)), *open_set_args(cfg)]
     primary = primary_method(methods)
     per_method: dict[str, dict[str, Any]] = {}
     rows_of: dict[str, list[dict[str, Any]]] = {}

@@ -194,7 +194,7 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     recognizer = Recognizer.from_checkpoint(
         cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg), search=search,
         threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
-        open_set_quantile=float(cfg.get("open_set_quantile", 0.88)), verify_top_k=cfg.get("verify_top_k", 8),
+        open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
         verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
         gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:

@@ -175,6 +175,13 @@ def test_verification_accepts_an_enrolled_product_and_rejects_an_unenrolled_one(
     plain.enrol(gallery).remove("green_can")
     answer = plain.predict(read_rgb(queries / "green_can.png"))
     assert answer.statistic == pytest.approx(unenrolled.statistic) and math.isnan(answer.verification)
+    # verify_or_ratio: the same statistic, calibrated on the ratio's own samples
+    lenient = Recognizer(StubModel(pose), SIZE, 1, "stub-model", open_set_statistic="verify_or_ratio")
+    lenient.enrol(gallery).remove("green_can")
+    for key, value in lenient.calibration().items():
+        assert torch.equal(value, plain.calibration()[key])
+    again = lenient.predict(read_rgb(queries / "green_can.png"))
+    assert again.statistic == pytest.approx(unenrolled.statistic) and again.verification > lenient.verify_max
     for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"}):
         with pytest.raises(MatlError, match=next(iter(bad))):
             stub_recognizer(**bad)
