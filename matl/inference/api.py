@@ -18,21 +18,27 @@ frame, its zero-mean normalised cross-correlation (ZNCC) with the anchor over th
 near 1 when the product and the pose are right. The nearest anchor is verified first; when ``1 -
 ZNCC`` exceeds ``verify_max`` the next-nearest anchors (up to ``verify_top_k``, any product, plane
 or rotation, each posed by the STN and the alignment stage) are tried in turn, and the first that
-verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays.
+verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays. The
+query's empty pixels (all channels 0: the transparent part of an RGBA query) are not compared.
 
 Open set: a query whose statistic exceeds :attr:`Recognizer.threshold` is answered ``known=False``
 (``object`` None). The statistic (``open_set_statistic``) is ``verify`` (default): 0 when the
-answer's pose verifies, else ``ratio``; ``ratio``: the distance to the nearest anchor of the
-answer's product over the distance to the nearest anchor of any *other* product (a query of an
-enrolled product is much closer to it than to anything else; an unenrolled product is about as far
-from its two nearest products); or ``distance``: the answer's nearest-anchor distance itself. With
-``threshold="auto"`` the threshold is calibrated on the gallery alone (:func:`calibrate_open_set`):
-warped copies of every enrolled plane (the training warps) are recognised against the whole
-gallery, their statistics are the *genuine* sample, and against the gallery without their own
-product (its nearest other products; with ``verify``, their candidates verified the same way) the
-*impostor* sample (what an unenrolled product looks like). The threshold is the
-``open_set_quantile`` quantile of the genuine sample; ``score`` is the share of the impostor
-sample above the query's statistic. The calibration's poses are the model's (no refinement).
+answer's pose verifies, else ``ratio``, so a verified answer is always known and the others are
+judged by the ratio; ``verify_or_ratio``: the same values, calibrated as ``ratio`` (below);
+``ratio``: the distance to the nearest anchor of the answer's product over the distance to the
+nearest anchor of any *other* product (a query of an enrolled product is much closer to it than to
+anything else; an unenrolled product is about as far from its two nearest products); or
+``distance``: the answer's nearest-anchor distance itself. With ``threshold="auto"`` the threshold
+is calibrated on the gallery alone (:func:`calibrate_open_set`): warped copies of every enrolled
+plane (the training warps) are embedded (for ``verify`` also posed and verified as queries are, by
+the model's poses without refinement); their statistic against the whole gallery is the *genuine*
+sample, and against the gallery without their own product the *impostor* sample (what an
+unenrolled product looks like). The threshold is the ``open_set_quantile`` quantile of the genuine
+sample; ``score`` is the share of the impostor sample above the query's statistic. With ``verify``
+the threshold is set by copies most of which verify, so it is strict on the ratio of the rest: a
+query that fails verification (a camera's blur, noise or JPEG, a poor mask, a poor pose) must be
+clearly nearer its product than any other; ``verify_or_ratio`` (with a lower quantile, e.g. 0.88)
+keeps the ratio's own threshold for those, trading unknowns let through for known products kept.
 
 One call at a time: the methods take a lock, so one recognizer can be shared by threads that take
 turns; for parallel queries make one recognizer per thread (they share nothing global).
@@ -68,7 +74,8 @@ from matl.utils.errors import MatlError
 
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model"]
 
-OPEN_SET_STATISTICS = ("verify", "ratio", "distance")
+OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
+VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
 GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
 PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
 
@@ -235,7 +242,7 @@ class Recognizer:
         search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
             query gets the nearest product).
-        open_set_statistic: ``verify``, ``ratio`` or ``distance`` (see the module docstring).
+        open_set_statistic: ``verify``, ``verify_or_ratio``, ``ratio`` or ``distance`` (see the module docstring).
         open_set_quantile: with ``auto``, the quantile of the genuine calibration sample used.
         calibration_warps: warped copies per plane for the calibration.
         verify_top_k: nearest anchors verified per query, until one verifies (0: no verification; then
@@ -269,7 +276,8 @@ class Recognizer:
         self.search = _search_factory(search)
         self.threshold_option = threshold
         if open_set_statistic not in OPEN_SET_STATISTICS:
-            raise MatlError(f"open_set_statistic={open_set_statistic!r} is invalid: use verify, ratio or distance")
+            raise MatlError(f"open_set_statistic={open_set_statistic!r} is invalid: use verify, verify_or_ratio, ratio "
+                            "or distance")
         if isinstance(verify_top_k, bool) or not isinstance(verify_top_k, int) or verify_top_k < 0:
             raise MatlError(f"verify_top_k={verify_top_k!r} is invalid: use an integer >= 0 (0: no verification)")
         if isinstance(verify_max, bool) or not isinstance(verify_max, (int, float)) or not 0.0 <= verify_max <= 2.0:
@@ -469,13 +477,15 @@ class Recognizer:
 
     def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 exclude_object: torch.Tensor | None = None) -> Verification:
-        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks."""
-        inner, chunks = self._gallery_recognizer(), []
-        for i in range(0, len(queries), 256):
-            part = None if first is None else tuple(t[i:i + 256] for t in first)
-            chunks.append(verify_candidates(inner, queries[i:i + 256], self.verify_top_k, self.verify_max,
+        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
+        queries' empty (all-zero: transparent) pixels are left out of the comparison."""
+        inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
+        for i in range(0, len(queries), step):
+            part = None if first is None else tuple(t[i:i + step] for t in first)
+            chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
                                             self.verify_blur, part,
-                                            None if exclude_object is None else exclude_object[i:i + 256]))
+                                            None if exclude_object is None else exclude_object[i:i + step],
+                                            skip_empty=True))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 
@@ -484,7 +494,7 @@ class Recognizer:
         if self.open_set_statistic == "distance":
             return nearest
         ratio = nearest / second.clamp_min(1e-12)
-        if self.open_set_statistic == "verify" and verified is not None:
+        if self.open_set_statistic in ("verify", "verify_or_ratio") and verified is not None:
             return torch.where(verified.cpu(), torch.zeros_like(ratio), ratio)
         return ratio
 
@@ -496,18 +506,16 @@ class Recognizer:
             own = torch.tensor([self.objects.index(p.object) for p in self._planes
                                 for _ in range(self.calibration_warps)])
             d, objects = self._object_distances(features)               # (M, O)
-            verify = self.open_set_statistic == "verify" and self._verifying()
-            images = self._calibration_images(self._planes) if verify else None
-            # a copy whose answer (against the whole gallery, verified as queries are) verifies: 0; else the
-            # ratio of its nearest product, the answer when nothing verifies
-            genuine_ok = self._verify(images).verified if images is not None else None
-            impostor_ok = None
+            # verify: the copies are posed and verified as queries are (against the whole gallery; the
+            # impostors against the gallery without their product); verify_or_ratio: the ratio's samples
+            images = (self._calibration_images(self._planes)
+                      if self.open_set_statistic == "verify" and self._verifying() else None)
             ranked = d.sort(1).values
+            genuine_ok = None if images is None else self._verify(images).verified
             genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
             impostor = torch.zeros(0, dtype=torch.float64)
             if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
-                if images is not None:
-                    impostor_ok = self._verify(images, exclude_object=own.to(self.device)).verified
+                impostor_ok = None if images is None else self._verify(images, None, own.to(self.device)).verified
                 others = d.scatter(1, own[:, None], float("inf")).sort(1).values
                 impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
             return {"genuine": genuine, "impostor": impostor}

@@ -16,13 +16,13 @@ alike), see :mod:`matl.inference.api`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
 
-from matl.geometry import warp_image
+from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["Verification", "aligned_queries", "anchor_foreground", "verification_distance", "verify_candidates",
            "zncc"]
@@ -44,19 +44,42 @@ def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
     return mask > 0.5
 
 
-def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor,
+                    skip_empty: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The queries in their anchors' frames: ``(warped (B, 3, S, S), valid (B, 1, S, S) bool)``.
 
     Args:
         queries: ``(B, 3, S, S)`` model-size query images.
         query_H_anchor: ``(B, 3, 3)`` pixel homographies, anchor pixel -> query pixel.
+        skip_empty: also count as invalid what comes from query pixels that are 0 in every channel (the
+            transparent part of an RGBA query, set to 0 when it was read: no data, not black print).
     Returns:
-        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query.
+        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query (and, with
+        ``skip_empty``, only among non-empty pixels).
     """
-    anchor_H_query = torch.linalg.inv(query_H_anchor.double()).to(queries.dtype)
-    ones = torch.ones_like(queries[:, :1])
-    warped = warp_image(torch.cat([queries, ones], 1), anchor_H_query)
+    query_H_anchor_norm = pixel_to_normalised(query_H_anchor.double(), tuple(queries.shape[-2:]))
+    data = (queries.amax(1, keepdim=True) > 0).to(queries.dtype) if skip_empty else torch.ones_like(queries[:, :1])
+    warped = sample_by_normalised(torch.cat([queries, data], 1), query_H_anchor_norm)
     return warped[:, :3], warped[:, 3:] > 0.999
+
+
+@lru_cache(maxsize=8)
+def _gaussian_kernel(sigma: float) -> torch.Tensor:
+    """``(K,)`` the normalised 1-D Gaussian of ``sigma`` px, ``K = 2 round(3 sigma) + 1`` taps."""
+    radius = round(3 * sigma)
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    kernel = torch.exp(-x * x / (2.0 * sigma * sigma))
+    return kernel / kernel.sum()
+
+
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``(B, C, H, W)`` images smoothed by a separable Gaussian of ``sigma`` px, borders reflected (the
+    same as kornia's ``gaussian_blur2d`` with that kernel size, in two small convolutions)."""
+    kernel = _gaussian_kernel(float(sigma)).to(images.device, images.dtype)
+    channels, radius = images.shape[1], len(kernel) // 2
+    x = F.pad(images, (radius, radius, radius, radius), mode="reflect")
+    x = F.conv2d(x, kernel.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
+    return F.conv2d(x, kernel.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
 
 
 def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -85,7 +108,7 @@ def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
-                          blur_sigma: float = 1.0, erode: int = 1) -> torch.Tensor:
+                          blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False) -> torch.Tensor:
     """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
 
     Args:
@@ -93,18 +116,17 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         anchors: ``(B, 3, S, S)`` the selected anchor of each query.
         blur_sigma: Gaussian smoothing of both images before the comparison, px (0: none).
         erode: the anchor's foreground is eroded by this many px.
+        skip_empty: leave out what comes from the query's empty (all-zero) pixels (:func:`aligned_queries`).
     Returns:
         ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
     """
     if len(queries) == 0:
         return torch.zeros(0, dtype=torch.float64)
-    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device))
+    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device), skip_empty)
     anchors = anchors.float()
     mask = anchor_foreground(anchors, erode) & valid
-    if blur_sigma > 0:
-        k = 2 * round(3 * blur_sigma) + 1
-        warped = gaussian_blur2d(warped, (k, k), (blur_sigma, blur_sigma))
-        anchors = gaussian_blur2d(anchors, (k, k), (blur_sigma, blur_sigma))
+    if blur_sigma > 0:  # one call for both
+        warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
     return (1.0 - zncc(warped, anchors, mask)).cpu()
 
 
@@ -119,7 +141,7 @@ class Verification:
         feature_distance: ``(Q,)`` ``||c(anchor) - c(s(query))||`` of the chosen anchor.
         distance: ``(Q,)`` float64 ``1 - ZNCC`` of the chosen anchor (:func:`verification_distance`).
         verified: ``(Q,)`` bool, ``distance <= verify_max``.
-        tried: ``(Q,)`` int64 candidates compared.
+        tried: ``(Q,)`` int64 candidates compared (including ``first``).
     """
 
     gallery_index: torch.Tensor
@@ -133,69 +155,85 @@ class Verification:
 @torch.no_grad()
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                      exclude_object: torch.Tensor | None = None) -> Verification:
-    """Verify the ``top_k`` nearest gallery anchors of each query, nearest first, until one verifies.
+                      exclude_object: torch.Tensor | None = None, skip_empty: bool = False) -> Verification:
+    """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
     the alignment stage against that candidate (when the model has one), and verified by
     :func:`verification_distance`. The first candidate whose ``1 - ZNCC`` is at most ``verify_max`` is
-    the answer; a query none of whose candidates verifies keeps its nearest anchor.
+    the answer; a query none of whose candidates verifies keeps its nearest anchor. The nearest
+    candidate is verified first; only the queries it does not verify go on, their other candidates
+    posed and compared in one batch (a handful of calls however many candidates).
 
     Args:
         recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
         queries: ``(Q, 3, S, S)`` model-size queries on the recognizer's device.
         top_k: candidates per query (>= 1).
         verify_max: the largest ``1 - ZNCC`` that verifies.
+        blur_sigma, skip_empty: as :func:`verification_distance`'s.
         first: ``(gallery_index (Q,), query_H_anchor (Q, 3, 3), feature distance (Q,))`` of an answer
-            already computed (the recognizer's own, possibly refined), verified first and counted as
-            the nearest candidate; None: every candidate comes from the search here.
+            already computed (the recognizer's own, possibly refined), taken as the nearest candidate;
+            None: the nearest candidate comes from the search here.
         exclude_object: ``(Q,)`` object index per query whose anchors are not candidates (the open-set
             calibration's impostors), or None.
     """
     g = recognizer.gallery
     n = len(queries)
-    index = torch.zeros(n, dtype=torch.long)
-    pose = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
-    feature_distance = torch.zeros(n, dtype=torch.float64)
-    distance = torch.full((n,), 2.0, dtype=torch.float64)
-    tried = torch.zeros(n, dtype=torch.long)
-    done = torch.zeros(n, dtype=torch.bool)
-    if first is not None:
-        index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
-        distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma)
-        done, tried = distance <= verify_max, torch.ones(n, dtype=torch.long)
-    todo = torch.nonzero(~done).flatten()
-    if len(todo) == 0 or (first is not None and top_k <= 1):
-        return Verification(index, pose, feature_distance, distance, done, tried)
+    embedded = None
+    if first is None:  # the nearest (allowed) anchor, posed as the recognizer poses it
+        embedded = _candidate_distances(recognizer, queries, exclude_object)
+        _, stn_H, warped, d = embedded
+        nearest_d, nearest = d.min(1)
+        H = stn_H
+        if getattr(recognizer, "align", None) is not None:
+            H = recognizer.align.infer(queries, g.images[nearest], stn_H, warped).query_H_anchor
+        first = (nearest, H, nearest_d)
+    index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
+    distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma, skip_empty=skip_empty)
+    tried = torch.ones(n, dtype=torch.long)
+    todo = torch.nonzero(distance > verify_max).flatten()
+    if len(todo) == 0 or top_k <= 1:
+        return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
     x = queries[todo]
-    features, stn_H, _, warped = recognizer.embed_queries(x)
+    if embedded is None:
+        _, stn_H, warped, d = _candidate_distances(recognizer, x, None if exclude_object is None else
+                                                   exclude_object[todo])
+    else:
+        stn_H, warped, d = stn_H[todo], warped[todo], d[todo]
+    d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
+    k = min(top_k - 1, d.shape[1])
+    cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
+    usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
+    t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
+    anchors = g.images[cand[t, j]]
+    H = stn_H[t]
+    if getattr(recognizer, "align", None) is not None:
+        H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
+    v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
+    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, skip_empty=skip_empty)
+    poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
+    poses[t, j] = H.cpu().double()
+    ok = v <= verify_max
+    rows = torch.nonzero(ok.any(1)).flatten()      # the first that verifies, nearest first
+    col = ok[rows].to(torch.int8).argmax(1)
+    at = todo[rows]
+    index[at] = cand[rows, col].cpu()
+    pose[at] = poses[rows, col]
+    feature_distance[at] = cand_d[rows, col].cpu().double()
+    distance[at] = v[rows, col]
+    tried[todo] += usable.sum(1)
+    return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
+
+
+def _candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(features, STN query_H_anchor, s(queries), distances (Q, G) to every anchor)``; anchors of
+    ``exclude_object`` at infinity."""
+    features, stn_H, _, warped = recognizer.embed_queries(queries)
     if stn_H is None:
         raise ValueError("verification needs a pose: the model has no STN")
-    d = torch.cdist(features.double(), recognizer.gallery_features.double())  # (T, G)
+    d = torch.cdist(features.double(), recognizer.gallery_features.double())
     if exclude_object is not None:
-        d = d.masked_fill(g.object_index.cpu()[None, :].to(d.device) == exclude_object[todo, None].to(d.device),
-                          float("inf"))
-    if first is not None:  # the answer already verified above is not tried again
-        d = d.scatter(1, index[todo, None].to(d.device), float("inf"))
-    k = min(top_k - (first is not None), d.shape[1])
-    cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
-    open_ = torch.ones(len(todo), dtype=torch.bool)
-    for j in range(k):
-        rows = torch.nonzero(open_ & torch.isfinite(cand_d[:, j]).cpu()).flatten()
-        if len(rows) == 0:
-            break
-        anchors = g.images[cand[rows, j]]
-        H = stn_H[rows]
-        if getattr(recognizer, "align", None) is not None:
-            H = recognizer.align.infer(x[rows], anchors, H, warped[rows]).query_H_anchor
-        v = verification_distance(x[rows], H, anchors, blur_sigma)
-        at = todo[rows]
-        tried[at] += 1
-        better = (v <= verify_max) | ((first is None) & (j == 0))  # no answer yet: the nearest is the default
-        chosen = rows[better]
-        index[todo[chosen]] = cand[chosen, j].cpu()
-        pose[todo[chosen]] = H[better].cpu().double()
-        feature_distance[todo[chosen]] = cand_d[chosen, j].cpu()
-        distance[todo[chosen]] = v[better]
-        open_[rows[v <= verify_max]] = False
-    return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
+        own = recognizer.gallery.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
+        d = d.masked_fill(own, float("inf"))
+    return features, stn_H, warped, d

@@ -120,7 +120,8 @@ def test_open_set_threshold_and_score(tmp_path: Path) -> None:
     auto = stub_recognizer().enrol(gallery)
     samples = auto.calibration()
     assert len(samples["genuine"]) == 3 * auto.calibration_warps and len(samples["impostor"]) == len(samples["genuine"])
-    assert auto.threshold == pytest.approx(calibrate_open_set(samples["genuine"], samples["impostor"], 0.94))
+    assert auto.threshold == pytest.approx(calibrate_open_set(samples["genuine"], samples["impostor"],
+                                                                    auto.open_set_quantile))
     match = auto.predict(query)
     assert match.known and 0.0 <= match.score <= 1.0
     with pytest.raises(MatlError, match="open_set_quantile"):
@@ -174,6 +175,13 @@ def test_verification_accepts_an_enrolled_product_and_rejects_an_unenrolled_one(
     plain.enrol(gallery).remove("green_can")
     answer = plain.predict(read_rgb(queries / "green_can.png"))
     assert answer.statistic == pytest.approx(unenrolled.statistic) and math.isnan(answer.verification)
+    # verify_or_ratio: the same statistic, calibrated on the ratio's own samples
+    lenient = Recognizer(StubModel(pose), SIZE, 1, "stub-model", open_set_statistic="verify_or_ratio")
+    lenient.enrol(gallery).remove("green_can")
+    for key, value in lenient.calibration().items():
+        assert torch.equal(value, plain.calibration()[key])
+    again = lenient.predict(read_rgb(queries / "green_can.png"))
+    assert again.statistic == pytest.approx(unenrolled.statistic) and again.verification > lenient.verify_max
     for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"}):
         with pytest.raises(MatlError, match=next(iter(bad))):
             stub_recognizer(**bad)
