@@ -16,11 +16,11 @@ the foreground step gives it one, and the query is then used exactly as an RGBA 
   with it (intersected with the GrabCut alpha, so background within the pose's error stays out) and
   recognised again. The last pass is the answer.
 
-A crop whose border band is already black (the training convention: background exactly 0) is used
-as given. ``foreground=none`` leaves every RGB query as it is. An RGBA
-query always uses its own alpha, with any foreground setting. GrabCut's k-means initialisation draws
-from OpenCV's global random generator; it is seeded (``seed``) before every call, so a query gets the
-same mask every time.
+A crop whose border band is mostly black already (the training convention: background exactly 0;
+``black_fraction`` of the band, as a product may reach into it) is used as given; ``foreground=none``
+leaves every RGB query as it is. An RGBA query always uses its own alpha, with any foreground setting.
+GrabCut's k-means initialisation draws from OpenCV's global random generator; it is seeded (``seed``)
+before every call, so a query gets the same mask every time.
 """
 
 from __future__ import annotations
@@ -59,8 +59,9 @@ class GrabCutForeground:
         iterations: GrabCut iterations.
         open_px: radius of the morphological opening that drops thin strands and specks (0: none).
         passes: pose passes after the first answer (0: the GrabCut mask alone).
-        black_level: a crop whose border band is nowhere brighter than this already has its background
-            (0: the training convention, exactly black) and is used as given.
+        black_level, black_fraction: a crop with at least ``black_fraction`` of its border band's pixels
+            at most ``black_level`` (0: the training convention, exactly black) already has its mask and is
+            used as given (a product may reach into the band).
         seed: OpenCV's random seed, set before each call (k-means of the colour models).
     """
 
@@ -69,20 +70,22 @@ class GrabCutForeground:
     open_px: int = 1
     passes: int = 0
     black_level: float = 0.0
+    black_fraction: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
         if (int(self.inset_px) < 1 or int(self.iterations) < 1 or int(self.open_px) < 0 or int(self.passes) < 0
-                or not 0.0 <= float(self.black_level) < 1.0):
+                or not 0.0 <= float(self.black_level) < 1.0 or not 0.0 < float(self.black_fraction) <= 1.0):
             raise MatlError(f"foreground grabcut: inset_px={self.inset_px}, iterations={self.iterations}, "
-                            f"open_px={self.open_px}, passes={self.passes}, black_level={self.black_level}: use "
-                            "inset_px >= 1, iterations >= 1, open_px >= 0, passes >= 0 and black_level in [0, 1)")
+                            f"open_px={self.open_px}, passes={self.passes}, black_level={self.black_level}, "
+                            f"black_fraction={self.black_fraction}: use inset_px >= 1, iterations >= 1, open_px >= 0, "
+                            "passes >= 0, black_level in [0, 1) and black_fraction in (0, 1]")
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """The alpha ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop in [0, 1].
 
-        A crop whose border band is black (at most ``black_level``), one too small for the band, or one
-        where nothing is found, keeps every pixel.
+        A crop whose border band is black (``black_level``, ``black_fraction``), one too small for the
+        band, or one where nothing is found, keeps every pixel.
         """
         h, w = rgb.shape[:2]
         inset = int(self.inset_px)
@@ -91,7 +94,7 @@ class GrabCutForeground:
             return whole
         band = np.ones((h, w), bool)
         band[inset:h - inset, inset:w - inset] = False
-        if float(rgb[band].max()) <= self.black_level:
+        if float((rgb[band].max(-1) <= self.black_level).mean()) >= self.black_fraction:
             return whole
         bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
         labels = np.zeros((h, w), np.uint8)

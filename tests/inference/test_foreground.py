@@ -67,7 +67,10 @@ def test_a_black_border_is_already_segmented_and_degenerate_crops_keep_every_pix
     image, truth = clutter_scene()
     black = image * truth[..., None]  # the training convention: background exactly 0
     assert np.array_equal(GrabCutForeground()(black), np.ones(truth.shape, np.float32))
-    assert GrabCutForeground(black_level=0.0)(black + 0.01).min() == 0.0  # a grey border is not black: segmented
+    assert GrabCutForeground()(black + 0.01).min() == 0.0  # a grey border is not black: segmented
+    reaching = black.copy()
+    reaching[:, :2] = 0.8  # a product covering a quarter of the band: still black
+    assert GrabCutForeground()(reaching).min() == 1.0 and GrabCutForeground(black_fraction=0.9)(reaching).min() == 0.0
     assert np.array_equal(GrabCutForeground()(image[:5, :5]), np.ones((5, 5), np.float32))  # too small for the band
     flat = np.full((40, 40, 3), 0.5, np.float32)  # nothing to separate
     assert GrabCutForeground()(flat).shape == (40, 40)
