@@ -45,7 +45,7 @@ from matl.data.gallery import Gallery
 from matl.data.image_files import fit_to_model, load_image_file, pose_in_files, read_rgba
 from matl.geometry import HomographySampler, warp_image
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.foreground import GrabCutForeground, foreground_option, pose_mask, split_alpha
+from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.recognizer import Prediction, embed
@@ -549,14 +549,12 @@ class Recognizer:
         """Matches of float RGB ``(H, W, 3)`` arrays, the model-frame prediction they came from and the
         model-size queries."""
         recognizer, _ = self._build()
-        split = [split_alpha(a) for a in arrays]
-        found = [self.foreground(rgb) if alpha is None and self.foreground is not None else None
-                 for rgb, alpha in split]
-        fitted = [fit_to_model(rgb if fg is None else rgb * fg[..., None], self.image_size, self.query_fill)
-                  for (rgb, _), fg in zip(split, found, strict=True)]
+        prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
+        fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
         queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
-        pred, queries = self._foreground_passes(recognizer, queries, [rgb for rgb, _ in split], found)
+        pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
+                                                [p[2] for p in prepared])
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None

@@ -36,7 +36,7 @@ import torch
 from matl.geometry import warp_image
 from matl.utils.errors import MatlError
 
-__all__ = ["FOREGROUNDS", "GrabCutForeground", "foreground_option", "pose_mask", "split_alpha"]
+__all__ = ["FOREGROUNDS", "GrabCutForeground", "foreground_option", "mask_query", "pose_mask", "split_alpha"]
 
 FOREGROUNDS = ("none", "grabcut")
 
@@ -59,6 +59,8 @@ class GrabCutForeground:
         iterations: GrabCut iterations.
         open_px: radius of the morphological opening that drops thin strands and specks (0: none).
         passes: pose passes after the first answer (0: the GrabCut mask alone).
+        alpha_band_px: an RGBA query's alpha seeds GrabCut, which decides the pixels within this many px
+            of the alpha's edge (what is farther in or out stays as the alpha says; 0: the alpha as given).
         black_level, black_fraction: a crop with at least ``black_fraction`` of its border band's pixels
             at most ``black_level`` (0: the training convention, exactly black) already has its mask and is
             used as given (a product may reach into the band).
@@ -69,17 +71,20 @@ class GrabCutForeground:
     iterations: int = 5
     open_px: int = 1
     passes: int = 0
+    alpha_band_px: int = 4
     black_level: float = 0.0
     black_fraction: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
         if (int(self.inset_px) < 1 or int(self.iterations) < 1 or int(self.open_px) < 0 or int(self.passes) < 0
-                or not 0.0 <= float(self.black_level) < 1.0 or not 0.0 < float(self.black_fraction) <= 1.0):
+                or int(self.alpha_band_px) < 0 or not 0.0 <= float(self.black_level) < 1.0
+                or not 0.0 < float(self.black_fraction) <= 1.0):
             raise MatlError(f"foreground grabcut: inset_px={self.inset_px}, iterations={self.iterations}, "
-                            f"open_px={self.open_px}, passes={self.passes}, black_level={self.black_level}, "
-                            f"black_fraction={self.black_fraction}: use inset_px >= 1, iterations >= 1, open_px >= 0, "
-                            "passes >= 0, black_level in [0, 1) and black_fraction in (0, 1]")
+                            f"open_px={self.open_px}, passes={self.passes}, alpha_band_px={self.alpha_band_px}, "
+                            f"black_level={self.black_level}, black_fraction={self.black_fraction}: use inset_px >= 1, "
+                            "iterations >= 1, open_px >= 0, passes >= 0, alpha_band_px >= 0, black_level in [0, 1) "
+                            "and black_fraction in (0, 1]")
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """The alpha ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop in [0, 1].
@@ -113,6 +118,60 @@ class GrabCutForeground:
         if not mask.any():
             return whole
         return _fill_holes(mask).astype(np.float32)
+
+
+    def refine_alpha(self, rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+        """An RGBA query's alpha ``(H, W)`` with its edge decided by GrabCut within ``alpha_band_px`` of it.
+
+        Args:
+            rgb: ``(H, W, 3)`` float in [0, 1], the pixels *under* the alpha (not multiplied by it).
+            alpha: ``(H, W)`` in [0, 1].
+        Returns:
+            ``(H, W)`` float32: ``alpha`` itself with ``alpha_band_px`` 0, or when the alpha has no pixel
+            farther than the band inside or outside it; else in {0, 1}.
+        """
+        band = int(self.alpha_band_px)
+        inside = (alpha > 0.5).astype(np.uint8)
+        if band == 0:
+            return alpha
+        outside_d = cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5)
+        inside_d = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
+        labels = np.where(inside > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+        labels[outside_d > band] = cv2.GC_BGD
+        labels[inside_d > band] = cv2.GC_FGD
+        if not (labels == cv2.GC_BGD).any() or not (labels == cv2.GC_FGD).any():
+            return alpha
+        bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
+        cv2.setRNGSeed(int(self.seed))
+        try:
+            cv2.grabCut(bgr, labels, None, np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64),
+                        int(self.iterations), cv2.GC_INIT_WITH_MASK)
+        except cv2.error:
+            return alpha
+        return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
+
+
+def mask_query(step: GrabCutForeground | None, image: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A query as the model takes it, through the foreground step ``step`` (None: no step).
+
+    Args:
+        image: float ``(H, W, 3)`` RGB or ``(H, W, 4)`` RGBA in [0, 1].
+    Returns:
+        ``(masked, rgb, found)``: the query with its background 0 ``(H, W, 3)``; its pixels before any mask
+        ``(H, W, 3)``; and the alpha ``(H, W)`` the step found for an RGB query (None for an RGBA query,
+        or without a step).
+    """
+    rgb = np.ascontiguousarray(image[..., :3], dtype=np.float32)
+    if image.shape[-1] == 4:
+        alpha = np.ascontiguousarray(image[..., 3], dtype=np.float32)
+        if step is not None:
+            alpha = step.refine_alpha(rgb, alpha)
+        return np.ascontiguousarray(rgb * alpha[..., None]), rgb, None
+    if step is None:
+        return rgb, rgb, None
+    found = step(rgb)
+    return np.ascontiguousarray(rgb * found[..., None]), rgb, found
 
 
 def _main_component(mask: np.ndarray) -> np.ndarray:

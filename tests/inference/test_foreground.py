@@ -11,7 +11,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from matl.inference.foreground import GrabCutForeground, foreground_option, pose_mask, split_alpha
+from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask, split_alpha
 from matl.utils.errors import MatlError
 from tests.inference.test_api import read_rgb, stub_recognizer
 from tests.predict_helpers import make_files, smooth_texture
@@ -96,6 +96,28 @@ def test_split_alpha_and_options() -> None:
         foreground_option(OmegaConf.create({"_target_": "matl.inference.foreground.GrabCutForeground", "size": 1}))
 
 
+def test_an_imperfect_alpha_is_decided_within_its_band() -> None:
+    image, truth = clutter_scene()
+    grown = cv2.dilate(truth, np.ones((7, 7), np.uint8))  # a segmentation 3 px too wide
+    alpha = GrabCutForeground()
+    refined = alpha.refine_alpha(image, grown)
+    assert iou(refined, truth) > iou(grown, truth) + 0.05 and iou(refined, truth) > 0.9
+    far = cv2.dilate(grown, np.ones((9, 9), np.uint8)) == 0  # farther than the band: as the alpha says
+    assert refined[far].sum() == 0
+    assert refined[cv2.erode(truth, np.ones((11, 11), np.uint8)) > 0].min() == 1.0
+    assert GrabCutForeground(alpha_band_px=0).refine_alpha(image, grown) is grown
+    everything = np.ones(truth.shape, np.float32)  # no pixel surely outside: kept as given
+    assert alpha.refine_alpha(image, everything) is everything
+    rgba = np.dstack([image, grown])
+    masked, rgb, found = mask_query(alpha, rgba)
+    assert found is None and np.array_equal(rgb, image) and np.allclose(masked, image * refined[..., None])
+    masked, rgb, found = mask_query(None, rgba)
+    assert found is None and np.allclose(masked, image * grown[..., None])
+    masked, rgb, found = mask_query(alpha, image)
+    assert found is not None and np.allclose(masked, image * found[..., None])
+    assert mask_query(None, image)[2] is None
+
+
 def test_pose_mask_is_the_planes_foreground_warped_by_its_pose() -> None:
     canon = torch.zeros(1, 3, 20, 20)
     canon[:, :, 5:10, 4:8] = 0.5
@@ -123,10 +145,10 @@ def test_recognizer_segments_rgb_queries_and_keeps_an_rgba_querys_alpha(tmp_path
     scene, inside = cluttered_query(queries, "green_can")
     plain = stub_recognizer(threshold=None, foreground="none").enrol(gallery)
     assert plain.predict(scene).object != "green_can"  # the background's blue wins the mean colour
-    rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes)).enrol(gallery)
+    rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes, alpha_band_px=0)).enrol(gallery)
     assert rec.options()["foreground"]["passes"] == passes
     assert rec.predict(scene).object == "green_can"
-    # an RGBA query uses its own alpha, never the foreground step: a mask holding the neighbour too
+    # an RGBA query uses its own alpha, not the crop's GrabCut: a mask holding the neighbour too
     alpha = np.zeros(inside.shape, np.uint8)
     alpha[:, : inside.shape[1] // 2] = 255
     rgba = rec.predict(np.dstack([scene, alpha]))
