@@ -26,6 +26,7 @@ from matl.evaluation.unseen import (
     Queries,
     _check,
     benchmark_table,
+    foreground_choice,
     method_overrides,
     predict_args,
     write_gallery,
@@ -222,6 +223,8 @@ def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
     assert predict_args("matl", common, "none") == [*common, "refine=false", "foreground=none"]
     assert predict_args("sift_ecc", common) == ["ckpt=c", "baseline=sift_ecc", "threshold=null"]
     assert method_overrides("sift") == []  # called as a function: no command-line overrides
+    assert foreground_choice(_cfg(tmp_path)) == "grabcut"  # the default, passed on to predict
+    assert foreground_choice(_cfg(tmp_path, "foreground=none")) == "none"
 
 
 def test_the_refiner_choice_and_its_keys_reach_matl_refine_only(monkeypatch) -> None:
