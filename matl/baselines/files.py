@@ -31,6 +31,7 @@ from matl.baselines.recognizer import BaselinePrediction, BaselineRecognizer, bu
 from matl.data.gallery import Gallery
 from matl.data.image_files import fit_to_model, pose_in_files
 from matl.inference.api import Match
+from matl.inference.foreground import split_alpha
 from matl.inference.gallery import EnrolledGallery, enrol_gallery
 from matl.models.checkpoint import checkpoint_info, load_checkpoint
 from matl.utils.errors import MatlError
@@ -107,10 +108,11 @@ class KeypointFileRecognizer:
                 "quantize_fallback": None}
 
     def predict_details(self, arrays: list[np.ndarray]) -> tuple[list[Match], BaselinePrediction, torch.Tensor]:
-        """Matches of float RGB ``(H, W, 3)`` arrays (any size), the model-frame prediction and the
-        ``(B, 3, S, S)`` model-size queries, as :meth:`matl.Recognizer.predict_details`."""
+        """Matches of float RGB ``(H, W, 3)`` or RGBA ``(H, W, 4)`` arrays (any size; alpha = mask), the
+        model-frame prediction and the ``(B, 3, S, S)`` model-size queries, as
+        :meth:`matl.Recognizer.predict_details`."""
         enrolled, inner = self._require()
-        fitted = [fit_to_model(a, self.image_size, self.query_fill) for a in arrays]
+        fitted = [fit_to_model(split_alpha(a)[0], self.image_size, self.query_fill) for a in arrays]
         queries = torch.stack([f[0] for f in fitted])
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
         pred = inner(queries)

@@ -382,22 +382,36 @@ def _own_command() -> str:
 
 
 def method_overrides(method: str) -> list[str]:
-    """The user's own overrides of a method's settings, as predict's keys: ``refiner=<choice>`` and
-    ``refiner.*`` for matl_refine, ``baselines.<name>.*`` (here) -> ``baseline.*`` (predict) for a
-    keypoint baseline."""
+    """The user's own overrides of a method's settings, as predict's keys: ``foreground.*`` for matl and
+    matl_refine, ``refiner=<choice>`` and ``refiner.*`` for matl_refine, ``baselines.<name>.*`` (here) ->
+    ``baseline.*`` (predict) for a keypoint baseline."""
     overrides = _task_overrides()
-    if method == "matl_refine":
-        return [o for o in overrides if o.lstrip("+~").startswith(("refiner.", "refiner="))]
+    if method in ("matl", "matl_refine"):  # foreground=<choice> is passed on by predict_args
+        keys = ("foreground.", "refiner.", "refiner=") if method == "matl_refine" else ("foreground.",)
+        return [o for o in overrides if o.lstrip("+~").startswith(keys)]
     prefix = f"baselines.{method}."
     return [o.replace(prefix, "baseline.", 1) for o in overrides if o.lstrip("+~").startswith(prefix)]
 
 
-def predict_args(method: str, common: list[str]) -> list[str]:
-    """predict's overrides for one method on the files of ``common`` (ckpt, gallery, images, fills, ...)."""
+def predict_args(method: str, common: list[str], foreground: str = "grabcut") -> list[str]:
+    """predict's overrides for one method on the files of ``common`` (ckpt, gallery, images, fills, ...);
+    ``foreground`` is the choice of the ``foreground`` group for matl and matl_refine."""
     if method in ("matl", "matl_refine"):
-        return [*common, _arg("refine", method == "matl_refine"), *method_overrides(method)]
+        return [*common, _arg("refine", method == "matl_refine"), _arg("foreground", foreground),
+                *method_overrides(method)]
     return [*[a for a in common if not a.startswith("threshold=")], _arg("baseline", method), _arg("threshold", "null"),
             *method_overrides(method)]
+
+
+def foreground_choice(cfg: DictConfig) -> str:
+    """The ``foreground`` group's choice (``grabcut`` or ``none``) of an unseen config, for predict."""
+    from matl.utils.runs import hydra_choice
+
+    choice = hydra_choice("foreground")
+    if choice is not None:
+        return choice
+    node = cfg.get("foreground")
+    return "none" if node is None or node.get("_target_") is None else "grabcut"
 
 
 # ------------------------------------------------------------------------------------------ timing
@@ -413,6 +427,7 @@ def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, 
                                  "gallery_fill": gallery_fill, "query_fill": query_fill, "batch_size": 1,
                                  "quantize": "none"})
         node.refiner = cfg.refiner
+        node.foreground = cfg.get("foreground")
         return recognizer_from_config(node)
     from matl.baselines.files import KeypointFileRecognizer
     from matl.baselines.recognizer import build_baseline
@@ -426,14 +441,15 @@ def time_methods(recognizers: dict[str, Any], files: list[Path], warmup: int, th
     """``query_ms`` of each enrolled recognizer on the same query files: the median of single-query calls
     (file already decoded; framing, recognition, pose and pose-in-files timed), after ``warmup`` untimed
     calls, with ``threads`` torch and OpenCV threads for every method."""
-    from matl.data.image_files import load_image_file
+    from matl.data.image_files import read_rgba
     from matl.utils.timing import median_query_ms
 
-    arrays = [load_image_file(f) for f in files]
+    arrays = [rgb if alpha is None else np.concatenate([rgb, alpha[..., None]], -1)  # RGBA: alpha = mask
+              for rgb, alpha in map(read_rgba, files)]
     shapes = {a.shape for a in arrays}
     if len(shapes) != 1:
         raise MatlError(f"timing needs query files of one size, got {sorted(shapes)}")
-    queries = torch.from_numpy(np.stack(arrays))  # (Q, H, W, 3)
+    queries = torch.from_numpy(np.stack(arrays))  # (Q, H, W, 3 or 4)
     previous = cv2.getNumThreads()
     cv2.setNumThreads(int(threads))
     try:
@@ -572,7 +588,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     rows_of: dict[str, list[dict[str, Any]]] = {}
     for method in methods:
         pred_path = out / ("predictions.jsonl" if method == primary else f"predictions_{method}.jsonl")
-        args = [*predict_args(method, common), _arg("out", pred_path)]
+        args = [*predict_args(method, common, foreground_choice(cfg)), _arg("out", pred_path)]
         log.info("unseen: %s: predicting %d queries with %s", condition, len(truth), method)
         run_predict([*args, _arg("hydra.run.dir", out / f"predict_{method}")], out, f"predict_{method}.log")
         summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)
@@ -618,6 +634,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
         "num_queries": summary["num_queries"], "missing_predictions": summary["missing_predictions"],
         "num_objects": cs.num_objects, "num_planes": cs.num_planes,
         "condition": condition, "condition_settings": _settings(cfg, condition), "method": primary,
+        "foreground": foreground_choice(cfg),
         "methods": {m: {k: v for k, v in r.items() if k != "summary"} for m, r in per_method.items()},
         "timing": timing,
         "checkpoint": str(ckpt_path), "image_size": size, "N": num_anchors,

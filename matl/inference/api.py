@@ -59,9 +59,10 @@ import torch
 from torch import nn
 
 from matl.data.gallery import Gallery
-from matl.data.image_files import fit_to_model, load_image_file, pose_in_files
+from matl.data.image_files import fit_to_model, load_image_file, pose_in_files, read_rgba
 from matl.geometry import HomographySampler, compose_query_H_canon, warp_image
 from matl.inference.fast_refine import FastRefiner
+from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.recognizer import Prediction, embed
@@ -183,9 +184,13 @@ def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> Photomet
     raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
 
 
-def _as_rgb(image: Any, what: str) -> np.ndarray:
-    """A query or gallery image as float32 ``(H, W, 3)`` RGB in [0, 1], transparent pixels set to 0."""
+def _as_rgb(image: Any, what: str, keep_alpha: bool = False) -> np.ndarray:
+    """A query or gallery image as float32 ``(H, W, 3)`` RGB in [0, 1], transparent pixels set to 0; with
+    ``keep_alpha`` an image with an alpha channel stays ``(H, W, 4)`` RGBA (alpha = mask)."""
     if isinstance(image, (str, Path)):
+        if keep_alpha:
+            rgb, alpha = read_rgba(image)
+            return rgb if alpha is None else np.ascontiguousarray(np.concatenate([rgb, alpha[..., None]], -1))
         return load_image_file(image)
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu()
@@ -203,7 +208,7 @@ def _as_rgb(image: Any, what: str) -> np.ndarray:
         x = np.clip(np.nan_to_num(array.astype(np.float32)), 0.0, 1.0)
     else:
         raise MatlError(f"{what}: expected uint8 (0-255) or float (0-1) pixels, got {array.dtype}")
-    if x.shape[-1] == 4:  # alpha is the segmentation mask: background becomes 0, as in training
+    if x.shape[-1] == 4 and not keep_alpha:  # alpha is the segmentation mask: background becomes 0, as in training
         x = x[..., :3] * x[..., 3:4]
     return np.ascontiguousarray(x)
 
@@ -252,6 +257,10 @@ class Recognizer:
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
+        foreground: the foreground step of RGB queries without a mask (:mod:`matl.inference.foreground`):
+            ``grabcut`` (default; a crop whose border is black is used as given), ``none`` (every RGB
+            query used as given) or a :class:`~matl.inference.foreground.GrabCutForeground`. An RGBA
+            query always uses its alpha.
     """
 
     def __init__(self, model: nn.Module, image_size: int, num_anchors: int, model_id: str, *,
@@ -261,7 +270,8 @@ class Recognizer:
                  open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
                  gallery_fill: float = 1.0,
-                 query_fill: float = 1.0, batch_size: int = 64) -> None:
+                 query_fill: float = 1.0, batch_size: int = 64,
+                 foreground: str | GrabCutForeground | None = "grabcut") -> None:
         if quantize not in ("none", "int8"):
             raise MatlError(f"quantize={quantize!r} is invalid: use none or int8")
         if not (threshold is None or threshold == "auto" or isinstance(threshold, (int, float))):
@@ -290,6 +300,7 @@ class Recognizer:
         self.calibration_warps = int(calibration_warps)
         self.gallery_fill, self.query_fill = float(gallery_fill), float(query_fill)
         self.batch_size = int(batch_size)
+        self.foreground = foreground_option(foreground)
         self.quantize_fallback: str | None = None
         self._planes: list[_Plane] = []
         self._lock = threading.RLock()
@@ -570,11 +581,13 @@ class Recognizer:
         name = getattr(self.search, "func", self.search)
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
                 "refine": self.refiner is not None, "refiner": refiner, "quantize": self.quantize,
+                "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback}
 
     def predict_details(self, arrays: list[np.ndarray]) -> tuple[list[Match], Prediction, torch.Tensor]:
-        """:meth:`predict` for float RGB ``(H, W, 3)`` arrays, plus the model-frame prediction and the
-        model-size query images it came from (for pictures and diagnostics)."""
+        """:meth:`predict` for float RGB ``(H, W, 3)`` or RGBA ``(H, W, 4)`` arrays in [0, 1] (alpha = mask),
+        plus the model-frame prediction and the model-size query images it came from (for pictures and
+        diagnostics)."""
         with self._lock:
             return self._predict_arrays(arrays)
 
@@ -595,7 +608,8 @@ class Recognizer:
         matches: list[Match] = []
         with self._lock:
             for start in range(0, len(items), self.batch_size):
-                chunk = [_as_rgb(x, f"image {start + i}") for i, x in enumerate(items[start:start + self.batch_size])]
+                chunk = [_as_rgb(x, f"image {start + i}", keep_alpha=True)
+                         for i, x in enumerate(items[start:start + self.batch_size])]
                 matches.extend(self._predict_arrays(chunk, top_k)[0])
         return matches[0] if single else matches
 
@@ -604,10 +618,12 @@ class Recognizer:
         """Matches of float RGB ``(H, W, 3)`` arrays, the model-frame prediction they came from and the
         model-size queries."""
         recognizer, _ = self._build()
-        fitted = [fit_to_model(a, self.image_size, self.query_fill) for a in arrays]
+        prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
+        fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
         queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
-        pred = recognizer(queries)
+        pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
+                                                [p[2] for p in prepared])
         verification = None
         if self._verifying() and pred.query_H_anchor is not None:
             verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
@@ -653,6 +669,32 @@ class Recognizer:
         return dataclasses.replace(pred, gallery_index=index, object_index=g.object_index[index],
                                    plane_index=g.plane_index[index], anchor_index=g.anchor_index[index],
                                    distance=distance, query_H_anchor=query_H_anchor, query_H_canon=query_H_canon)
+
+    def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
+                           found: list[np.ndarray | None]) -> tuple[Prediction, torch.Tensor]:
+        """The prediction of ``(B, 3, S, S)`` queries after the foreground step's pose passes, and the queries
+        of the last pass: a query whose alpha came from the foreground step (``found[i]`` ``(H, W)``, None
+        otherwise) is masked again by its answered plane warped by its pose, within that alpha
+        (:mod:`matl.inference.foreground`). Earlier passes skip the refinement."""
+        passes = 0 if self.foreground is None or all(f is None for f in found) else int(self.foreground.passes)
+        if passes == 0:
+            return recognizer(queries), queries
+        redo = torch.tensor([f is not None for f in found], device=queries.device)[:, None, None, None]
+        raw = torch.stack([fit_to_model(rgb, self.image_size, self.query_fill)[0] for rgb in rgbs])
+        ones = [np.ones(rgb.shape[:2], np.float32) if f is None else f for rgb, f in zip(rgbs, found, strict=True)]
+        alpha = torch.stack([fit_to_model(np.repeat(a[..., None], 3, -1), self.image_size, self.query_fill)[0][:1]
+                             for a in ones])
+        within = (raw * alpha).to(queries.device)  # (B, 3, S, S): the query inside the foreground step's alpha
+        inner = self._gallery_recognizer()
+        canon = torch.stack([p.canon_u8 for p in self._planes]).to(queries.device)
+        for _ in range(passes):
+            pred = inner(queries)
+            if pred.query_H_canon is None:  # a model without a pose: the foreground step's alpha alone
+                break
+            outline = pose_mask(canon[pred.plane_index.to(queries.device)], pred.query_H_canon.to(queries.device),
+                                self.image_size)
+            queries = torch.where(redo, within * outline, queries)
+        return recognizer(queries), queries
 
     def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,
                threshold: float | None, alternatives: list[Match], verification: float = float("nan")) -> Match:

@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from PIL import Image, ImageDraw
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from matl.data.image_files import ImageFileError, list_image_candidates, load_image_file
+from matl.data.image_files import ImageFileError, list_image_candidates, read_rgba
 from matl.geometry import transfer_points, warp_image
 from matl.inference.api import Match, Recognizer
 from matl.inference.gallery import report_skipped
@@ -156,17 +156,19 @@ def predict_files(recognizer: Recognizer, files: Sequence[Path], sink: Callable[
     with Progress(*columns, disable=not show_progress or len(files) < 2) as progress:
         task = progress.add_task("predict", total=len(files))
         for chunk in _batches(files, recognizer.batch_size):
-            paths, originals = [], []
+            paths, originals, inputs = [], [], []
             for path in chunk:
                 try:
-                    originals.append(load_image_file(path))
+                    rgb, alpha = read_rgba(path)
                 except ImageFileError as error:
                     report_skipped(path, str(error).removeprefix(f"{path}: "))
                     bad.append(path)
                     continue
                 paths.append(path)
+                originals.append(rgb if alpha is None else rgb * alpha[..., None])
+                inputs.append(rgb if alpha is None else np.concatenate([rgb, alpha[..., None]], -1))  # alpha = mask
             if paths:
-                matches, pred, queries = recognizer.predict_details(originals)
+                matches, pred, queries = recognizer.predict_details(inputs)
                 for path, match in zip(paths, matches, strict=True):
                     sink(record_of(path, match))
                 if viz_dir is not None:
@@ -196,7 +198,8 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
         threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
         open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
         verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
-        gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size))
+        gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size),
+        foreground=cfg.get("foreground"))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:
         raise MatlError(f"checkpoint {cfg.ckpt} was trained at {recognizer.image_size} px, not "
                         f"image_size={cfg.image_size}: the model size always comes from the checkpoint "

@@ -26,6 +26,7 @@ from matl.evaluation.unseen import (
     Queries,
     _check,
     benchmark_table,
+    foreground_choice,
     method_overrides,
     predict_args,
     write_gallery,
@@ -219,21 +220,25 @@ def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
     assert _check(_cfg(tmp_path, "condition=all"))[0] == list(CONDITIONS)
     assert _check(_cfg(tmp_path, "condition=[view,clean]", "methods=[sift]")) == (["view", "clean"], ["sift"])
     common = ["ckpt=c", "threshold=null"]
-    assert predict_args("matl_refine", common) == [*common, "refine=true"]
+    assert predict_args("matl_refine", common) == [*common, "refine=true", "foreground=grabcut"]
+    assert predict_args("matl", common, "none") == [*common, "refine=false", "foreground=none"]
     assert predict_args("sift_ecc", common) == ["ckpt=c", "baseline=sift_ecc", "threshold=null"]
     assert predict_args("xfeat_lighterglue", common) == ["ckpt=c", "baseline=xfeat_lighterglue", "threshold=null"]
     assert _check(_cfg(tmp_path, "methods=[matl,lightglue,xfeat,xfeat_lighterglue]"))[1] == [
         "matl", "lightglue", "xfeat", "xfeat_lighterglue"]
     assert method_overrides("sift") == []  # called as a function: no command-line overrides
+    assert foreground_choice(_cfg(tmp_path)) == "grabcut"  # the default, passed on to predict
+    assert foreground_choice(_cfg(tmp_path, "foreground=none")) == "none"
 
 
 def test_the_refiner_choice_and_its_keys_reach_matl_refine_only(monkeypatch) -> None:
     import matl.evaluation.unseen as unseen
 
-    given = ["ckpt=c", "refiner=fast", "refiner.levels=2", "baselines.sift.ratio=0.7", "queries=10"]
+    given = ["ckpt=c", "refiner=fast", "refiner.levels=2", "baselines.sift.ratio=0.7", "queries=10",
+             "foreground.passes=1"]
     monkeypatch.setattr(unseen, "_task_overrides", lambda: given)
-    assert method_overrides("matl_refine") == ["refiner=fast", "refiner.levels=2"]
-    assert method_overrides("matl") == []
+    assert method_overrides("matl_refine") == ["refiner=fast", "refiner.levels=2", "foreground.passes=1"]
+    assert method_overrides("matl") == ["foreground.passes=1"]
     assert method_overrides("sift") == ["baseline.ratio=0.7"]
 
 

@@ -98,7 +98,8 @@ def test_enrol_add_predict_and_pose_in_the_callers_pixels(tmp_path: Path) -> Non
 
 def test_alpha_is_the_mask(tmp_path: Path) -> None:
     gallery, queries, _ = make_files(tmp_path)
-    rec = stub_recognizer(threshold=None).enrol(gallery)
+    # exactly as given without the foreground step (foreground=grabcut decides its edge: test_foreground.py)
+    rec = stub_recognizer(threshold=None, foreground="none").enrol(gallery)
     query = read_rgb(queries / "red_box.png")
     alpha = np.zeros(query.shape[:2], np.uint8)
     alpha[20:100, 10:80] = 255

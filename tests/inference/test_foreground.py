@@ -1,0 +1,160 @@
+"""The foreground step of RGB queries without a mask (matl/inference/foreground.py) and its hook in the API."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask, split_alpha
+from matl.utils.errors import MatlError
+from tests.inference.test_api import read_rgb, stub_recognizer
+from tests.predict_helpers import make_files, smooth_texture
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def grey_texture(height: int, width: int, seed: int) -> np.ndarray:
+    """A busy grey background ``(H, W, 3)`` in [0, 1] (gravel-like blobs)."""
+    rng = np.random.default_rng(seed)
+    noise = cv2.GaussianBlur(rng.random((height, width)), (0, 0), 1.5)
+    grey = 0.25 + 0.5 * (noise - noise.min()) / (noise.max() - noise.min())
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def rotated_box(height: int, width: int, centre: tuple[float, float], size: tuple[float, float],
+                angle: float) -> np.ndarray:
+    """``(H, W)`` float32 mask of a filled rotated rectangle."""
+    points = cv2.boxPoints(((centre[0], centre[1]), size, angle))
+    mask = np.zeros((height, width), np.uint8)
+    cv2.fillPoly(mask, [np.round(points).astype(np.int32)], 1)
+    return mask.astype(np.float32)
+
+
+def clutter_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A 96x96 crop: a red product in the middle, a blue neighbour cut by the right edge, a grey background.
+
+    Returns the RGB image and the product's true mask.
+    """
+    h = w = 96
+    product = rotated_box(h, w, (46.0, 50.0), (46.0, 30.0), 25.0)
+    neighbour = rotated_box(h, w, (100.0, 30.0), (40.0, 40.0), -10.0)
+    image = grey_texture(h, w, seed)
+    for mask, colour, k in ((neighbour, (0.15, 0.2, 1.0), 1), (product, (1.0, 0.15, 0.1), 2)):
+        image = np.where(mask[..., None] > 0, smooth_texture(h, w, colour, seed=k), image)
+    return image.astype(np.float32), product
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(((a > 0.5) & (b > 0.5)).sum() / ((a > 0.5) | (b > 0.5)).sum())
+
+
+def test_grabcut_finds_the_product_and_leaves_out_the_neighbour() -> None:
+    image, truth = clutter_scene()
+    alpha = GrabCutForeground()(image)
+    assert alpha.shape == truth.shape and alpha.dtype == np.float32 and set(np.unique(alpha)) <= {0.0, 1.0}
+    assert iou(alpha, truth) > 0.9
+    assert alpha[:, 88:].sum() == 0  # the neighbour, cut by the crop's edge, is background
+    assert np.array_equal(alpha, GrabCutForeground()(image))  # seeded: the same mask every time
+
+
+def test_a_black_border_is_already_segmented_and_degenerate_crops_keep_every_pixel() -> None:
+    image, truth = clutter_scene()
+    black = image * truth[..., None]  # the training convention: background exactly 0
+    assert np.array_equal(GrabCutForeground()(black), np.ones(truth.shape, np.float32))
+    assert GrabCutForeground()(black + 0.01).min() == 0.0  # a grey border is not black: segmented
+    reaching = black.copy()
+    reaching[:, :2] = 0.8  # a product covering a quarter of the band: still black
+    assert GrabCutForeground()(reaching).min() == 1.0 and GrabCutForeground(black_fraction=0.9)(reaching).min() == 0.0
+    assert np.array_equal(GrabCutForeground()(image[:5, :5]), np.ones((5, 5), np.float32))  # too small for the band
+    flat = np.full((40, 40, 3), 0.5, np.float32)  # nothing to separate
+    assert GrabCutForeground()(flat).shape == (40, 40)
+
+
+def test_split_alpha_and_options() -> None:
+    rgba = np.random.default_rng(0).random((8, 6, 4)).astype(np.float32)
+    rgb, alpha = split_alpha(rgba)
+    assert np.allclose(rgb, rgba[..., :3] * rgba[..., 3:]) and np.array_equal(alpha, rgba[..., 3])
+    assert split_alpha(rgba[..., :3])[1] is None
+    assert foreground_option("none") is None and foreground_option(None) is None
+    assert foreground_option("grabcut") == GrabCutForeground()
+    step = GrabCutForeground(passes=2)
+    assert foreground_option(step) is step
+    for name in ("grabcut", "none"):  # the config group's files
+        node = OmegaConf.load(REPO / "conf" / "foreground" / f"{name}.yaml")
+        assert foreground_option(node) == (GrabCutForeground() if name == "grabcut" else None)
+    with pytest.raises(MatlError, match="foreground='rembg' is invalid"):
+        foreground_option("rembg")
+    with pytest.raises(MatlError, match="inset_px >= 1"):
+        GrabCutForeground(inset_px=0)
+    with pytest.raises(MatlError, match="foreground: "):
+        foreground_option(OmegaConf.create({"_target_": "matl.inference.foreground.GrabCutForeground", "size": 1}))
+
+
+def test_an_imperfect_alpha_is_decided_within_its_band() -> None:
+    image, truth = clutter_scene()
+    grown = cv2.dilate(truth, np.ones((7, 7), np.uint8))  # a segmentation 3 px too wide
+    alpha = GrabCutForeground()
+    refined = alpha.refine_alpha(image, grown)
+    assert iou(refined, truth) > iou(grown, truth) + 0.05 and iou(refined, truth) > 0.9
+    far = cv2.dilate(grown, np.ones((9, 9), np.uint8)) == 0  # farther than the band: as the alpha says
+    assert refined[far].sum() == 0
+    assert refined[cv2.erode(truth, np.ones((11, 11), np.uint8)) > 0].min() == 1.0
+    assert GrabCutForeground(alpha_band_px=0).refine_alpha(image, grown) is grown
+    everything = np.ones(truth.shape, np.float32)  # no pixel surely outside: kept as given
+    assert alpha.refine_alpha(image, everything) is everything
+    rgba = np.dstack([image, grown])
+    masked, rgb, found = mask_query(alpha, rgba)
+    assert found is None and np.array_equal(rgb, image) and np.allclose(masked, image * refined[..., None])
+    masked, rgb, found = mask_query(None, rgba)
+    assert found is None and np.allclose(masked, image * grown[..., None])
+    masked, rgb, found = mask_query(alpha, image)
+    assert found is not None and np.allclose(masked, image * found[..., None])
+    assert mask_query(None, image)[2] is None
+
+
+def test_pose_mask_is_the_planes_foreground_warped_by_its_pose() -> None:
+    canon = torch.zeros(1, 3, 20, 20)
+    canon[:, :, 5:10, 4:8] = 0.5
+    same = pose_mask(canon, torch.eye(3)[None], 20)
+    assert same.shape == (1, 1, 20, 20) and torch.equal(same[0, 0] > 0.5, canon[0, 0] > 0)
+    shift = torch.tensor([[[1.0, 0.0, 3.0], [0.0, 1.0, 2.0], [0.0, 0.0, 1.0]]])
+    moved = pose_mask(canon, shift, 20)[0, 0]
+    assert torch.allclose(moved[7:12, 7:11], torch.ones(5, 4)) and float(moved.sum()) == pytest.approx(20.0)
+
+
+def cluttered_query(queries: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """make_files' query of ``name`` on a blue-grey wall, a blue neighbour filling the left half (uint8)."""
+    query = read_rgb(queries / f"{name}.png").astype(np.float32) / 255.0
+    h, w = query.shape[:2]
+    inside = (query.max(-1) > 0).astype(np.float32)
+    neighbour = rotated_box(h, w, (0.0, 0.5 * h), (96.0, 2.0 * h), 0.0) * (1 - inside)
+    scene = np.where(inside[..., None] > 0, query, grey_texture(h, w, 3) * np.array([0.5, 0.6, 1.0]))
+    scene = np.where(neighbour[..., None] > 0, smooth_texture(h, w, (0.15, 0.2, 1.0), seed=7), scene)
+    return (scene * 255).round().astype(np.uint8), inside
+
+
+@pytest.mark.parametrize("passes", [0, 1])
+def test_recognizer_segments_rgb_queries_and_keeps_an_rgba_querys_alpha(tmp_path: Path, passes: int) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    scene, inside = cluttered_query(queries, "green_can")
+    plain = stub_recognizer(threshold=None, foreground="none").enrol(gallery)
+    assert plain.predict(scene).object != "green_can"  # the background's blue wins the mean colour
+    rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes, alpha_band_px=0)).enrol(gallery)
+    assert rec.options()["foreground"]["passes"] == passes
+    assert rec.predict(scene).object == "green_can"
+    # an RGBA query uses its own alpha, not the crop's GrabCut: a mask holding the neighbour too
+    alpha = np.zeros(inside.shape, np.uint8)
+    alpha[:, : inside.shape[1] // 2] = 255
+    rgba = rec.predict(np.dstack([scene, alpha]))
+    given = plain.predict((scene * (alpha[..., None] > 0)).astype(np.uint8))
+    assert rgba.object == given.object and rgba.distance == pytest.approx(given.distance)
+    # black-background queries (the convention) are used as given: the same answers as without the step
+    clean = read_rgb(queries / "red_box.png")
+    assert rec.predict(clean).distance == pytest.approx(plain.predict(clean).distance)
+    assert math.isfinite(rec.predict(clean).distance)
