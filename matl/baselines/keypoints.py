@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -40,6 +41,7 @@ __all__ = [
     "RansacVotingMatcher",
     "TentativeMatches",
     "check_image_batch",
+    "extract_in_batches",
     "measure_query_ms",
     "mutual_nn_matches",
     "ratio_test_matches",
@@ -408,6 +410,15 @@ def to_gray_float(images: torch.Tensor) -> torch.Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to ``(B, 1, H, W)`` float grey (ITU-R BT.601 luma)."""
     w = images.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
     return (images * w).sum(1, keepdim=True)
+
+
+def extract_in_batches(extract_batch: Callable[[torch.Tensor], list[ImageFeatures]], images: torch.Tensor,
+                       batch_size: int) -> list[ImageFeatures]:
+    """``extract_batch`` over ``images`` ``(B, 3, H, W)`` in chunks of ``batch_size``, the features in order."""
+    out: list[ImageFeatures] = []
+    for start in range(0, images.shape[0], batch_size):
+        out.extend(extract_batch(images[start : start + batch_size]))
+    return out
 
 
 class RansacVotingMatcher(ABC):

@@ -29,6 +29,7 @@ from matl.baselines.keypoints import (
     ImageFeatures,
     RansacVotingMatcher,
     TentativeMatches,
+    extract_in_batches,
     mutual_nn_matches,
 )
 
@@ -228,10 +229,7 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
     @torch.no_grad()
     def extract(self, images: torch.Tensor) -> list[ImageFeatures]:
         """Keypoints ``(K, 2)`` in the input's pixel frame and unit descriptors ``(K, 128)``."""
-        out: list[ImageFeatures] = []
-        for start in range(0, images.shape[0], self.batch_size):
-            out.extend(self._extract_batch(images[start : start + self.batch_size].float()))
-        return out
+        return extract_in_batches(self._extract_batch, images.float(), self.batch_size)
 
     def _extract_batch(self, images: torch.Tensor) -> list[ImageFeatures]:
         h, w = images.shape[-2:]

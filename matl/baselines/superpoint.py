@@ -25,6 +25,7 @@ from matl.baselines.keypoints import (
     ImageFeatures,
     RansacVotingMatcher,
     TentativeMatches,
+    extract_in_batches,
     mutual_nn_matches,
     to_gray_float,
 )
@@ -228,10 +229,7 @@ class SuperPointRansacMatcher(RansacVotingMatcher):
     @torch.no_grad()
     def extract(self, images: torch.Tensor) -> list[ImageFeatures]:
         """SuperPoint keypoints ``(K, 2)`` and unit descriptors ``(K, 256)`` of images ``(B, 3, H, W)``."""
-        out: list[ImageFeatures] = []
-        for start in range(0, images.shape[0], self.batch_size):
-            out.extend(self._extract_batch(images[start : start + self.batch_size]))
-        return out
+        return extract_in_batches(self._extract_batch, images, self.batch_size)
 
     def _extract_batch(self, images: torch.Tensor) -> list[ImageFeatures]:
         h, w = images.shape[-2:]

@@ -38,6 +38,7 @@ from matl.baselines.keypoints import (
     ImageFeatures,
     RansacVotingMatcher,
     TentativeMatches,
+    extract_in_batches,
     mutual_nn_matches,
 )
 from matl.baselines.lightglue import LightGlueFeatures, lightglue_from_state, shortlisted_lightglue_matches
@@ -169,10 +170,7 @@ class XFeatRansacMatcher(RansacVotingMatcher):
     @torch.no_grad()
     def extract(self, images: torch.Tensor) -> list[ImageFeatures]:
         """Keypoints ``(K, 2)`` in the input's pixels and unit descriptors ``(K, 64)`` of images ``(B, 3, H, W)``."""
-        out: list[ImageFeatures] = []
-        for start in range(0, images.shape[0], self.batch_size):
-            out.extend(self._extract_batch(images[start : start + self.batch_size].float()))
-        return out
+        return extract_in_batches(self._extract_batch, images.float(), self.batch_size)
 
     def _extract_batch(self, images: torch.Tensor) -> list[ImageFeatures]:
         h, w = images.shape[-2:]
