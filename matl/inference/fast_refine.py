@@ -58,7 +58,7 @@ from matl.utils.errors import MatlError
 __all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
 
 FAST_LOSSES = ("l2", "huber", "cauchy")
-REGIONS = ("frame", "foreground")
+REGIONS = ("frame", "foreground", "auto")
 STARTS = ("stn", "align")
 _FOREGROUND = 1e-3  # an anchor pixel brighter than this in any channel is foreground (backgrounds are 0)
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as PhotometricRefiner
@@ -127,6 +127,11 @@ class AnchorTemplates:
     anchors: list[list[AnchorLevel]]
     image_size: tuple[int, int]
     seconds: float = field(default=0.0)
+    #: ``region=auto``: per anchor, its ``region=foreground`` levels (None otherwise)
+    foreground: list[list[AnchorLevel]] | None = None
+    #: ``region=auto``: per anchor, ``(H, W)`` uint8 1 where the anchor frame is farther than ``auto_band`` px
+    #: from the anchor's foreground (None otherwise)
+    outside: list[np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.anchors)
@@ -134,7 +139,9 @@ class AnchorTemplates:
     @property
     def nbytes(self) -> int:
         """Memory held, bytes."""
-        return sum(level.nbytes for anchor in self.anchors for level in anchor)
+        held = sum(level.nbytes for anchor in self.anchors for level in anchor)
+        held += sum(level.nbytes for anchor in self.foreground or () for level in anchor)
+        return held + sum(mask.nbytes for mask in self.outside or ())
 
 
 _EYE8 = np.eye(8)
@@ -208,7 +215,8 @@ class FastRefiner:
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "frame",
                  loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
                  min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.01,
-                 threads: int | None = 1, blur: float = 0.0, start: str = "stn") -> None:
+                 threads: int | None = 1, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
+                 auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined") -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
         if not per_level or min(per_level) < 0:
@@ -236,6 +244,13 @@ class FastRefiner:
         if start not in STARTS:
             raise MatlError(f"refiner.start must be one of {', '.join(STARTS)}, got {start!r}")
         self.start = start
+        if int(auto_band) < 0 or not float(auto_leak) >= 0.0 or not float(auto_level) >= 0.0 or auto_from not in (
+                "refined", "start"):
+            raise MatlError(f"refiner.auto_band, auto_level and auto_leak must be >= 0 and auto_from refined or start; "
+                            f"got auto_band={auto_band}, auto_level={auto_level}, auto_leak={auto_leak}, "
+                            f"auto_from={auto_from!r}")
+        self.auto_band, self.auto_leak, self.auto_from = int(auto_band), float(auto_leak), auto_from
+        self.auto_level = float(auto_level)
         self._templates: AnchorTemplates | None = None  # set by prepare()
         self._level_ms: list[float] = []
 
@@ -262,7 +277,7 @@ class FastRefiner:
             return image
         return cv2.GaussianBlur(image, (0, 0), self.blur, borderType=cv2.BORDER_CONSTANT)
 
-    def _anchor(self, gray: np.ndarray, fg: np.ndarray) -> list[AnchorLevel]:
+    def _anchor(self, gray: np.ndarray, fg: np.ndarray, region_kind: str) -> list[AnchorLevel]:
         size = gray.shape
         gray = self._blurred(gray)
         out = []
@@ -271,7 +286,7 @@ class FastRefiner:
             h, w = image.shape
             mask = (masks[level] > _FOREGROUND).astype(np.float32)  # the blurred support at coarse levels
             image = image * mask
-            if self.region == "frame":
+            if region_kind == "frame":
                 region = None
             else:
                 kernel = np.ones((2 * self.erode + 1, 2 * self.erode + 1), np.uint8)
@@ -311,9 +326,16 @@ class FastRefiner:
         start = time.perf_counter()
         gray = _luminance(anchors)
         fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
-        templates = [self._anchor(gray[i], fg[i]) for i in range(len(gray))]
+        frame_kind = "foreground" if self.region == "foreground" else "frame"
+        templates = [self._anchor(gray[i], fg[i], frame_kind) for i in range(len(gray))]
+        foreground = outside = None
+        if self.region == "auto":
+            foreground = [self._anchor(gray[i], fg[i], "foreground") for i in range(len(gray))]
+            size = 2 * self.auto_band + 1
+            kernel = np.ones((size, size), np.uint8)
+            outside = [(cv2.dilate((f > 0).astype(np.uint8), kernel) == 0).astype(np.uint8) for f in fg]
         return AnchorTemplates(templates, (int(anchors.shape[-2]), int(anchors.shape[-1])),
-                               time.perf_counter() - start)
+                               time.perf_counter() - start, foreground, outside)
 
     def prepare(self, anchors: torch.Tensor) -> FastRefiner:
         """Precompute the data of a gallery's anchors ``(G, 3, H, W)``; returns self."""
@@ -421,9 +443,40 @@ class FastRefiner:
         sv = np.linalg.svd(H, compute_uv=False)
         return bool(sv[-1] > 0 and sv[0] / sv[-1] < self.max_condition)
 
+    def _descend(self, pyramid: list[np.ndarray], anchor: list[AnchorLevel], H: np.ndarray, scale: float,
+                 timing: bool) -> tuple[np.ndarray, float]:
+        """Coarse to fine from the normalised pose ``H``; the final normalised pose and its loss at full size."""
+        loss = math.inf
+        times = [0.0] * len(pyramid)
+        for level in reversed(range(len(pyramid))):  # coarsest first
+            t0 = time.perf_counter() if timing else 0.0
+            H, loss = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
+            if timing:
+                times[level] = 1e3 * (time.perf_counter() - t0)
+        if timing:
+            self._level_ms = times
+        return H, loss
+
+    def leak(self, query: np.ndarray, full: AnchorLevel, outside: np.ndarray, H: np.ndarray) -> float:
+        """``region=auto``'s statistic: the query's pixels brighter than ``auto_level`` (luminance in [0, 1]) that the
+        normalised pose ``H`` puts in the anchor frame farther than ``auto_band`` px from the anchor's foreground, as a
+        fraction of the foreground's area."""
+        M = full.pixel_H_norm @ H @ full.norm_H_pixel
+        warped = cv2.warpPerspective(query, M, full.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
+                                     borderValue=0)
+        seen = cv2.countNonZero(cv2.bitwise_and((warped > self.auto_level).view(np.uint8), outside))
+        return seen / max(full.count, 1.0)
+
     def refine_one(self, query: np.ndarray, anchor: list[AnchorLevel], query_H_anchor: np.ndarray,
-                   timing: bool = False) -> tuple[np.ndarray, float, float, bool]:
+                   timing: bool = False, foreground: list[AnchorLevel] | None = None,
+                   outside: np.ndarray | None = None) -> tuple[np.ndarray, float, float, bool]:
         """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``.
+
+        ``region=auto`` passes the anchor's ``region=foreground`` levels and its ``outside`` mask too: after the
+        whole-frame refinement, a query with more than ``auto_leak`` of the anchor's foreground area in non-black
+        pixels beyond ``auto_band`` px of its outline (something else is in the crop: other faces of a 3D object,
+        background a mask let through, a neighbour) is refined again over the foreground alone, from the
+        whole-frame result (``auto_from=refined``) or from the start (``start``), and judged by that objective.
 
         Returns ``(query_H_anchor (3, 3) float64 pixels, loss_before, loss_after, accepted)``;
         ``timing=True`` keeps the milliseconds of each level for :attr:`last_level_ms` (finest first).
@@ -436,17 +489,13 @@ class FastRefiner:
         H0n = H0n / H0n[2, 2]
         std = cv2.meanStdDev(query, mask=(query > _FOREGROUND).view(np.uint8))[1]
         scale = max(float(std[0, 0]), self.min_std)
+        raw = query
         query = self._blurred(query)
         pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
-        H, loss = H0n, math.inf
-        times = [0.0] * len(pyramid)
-        for level in reversed(range(len(pyramid))):  # coarsest first
-            t0 = time.perf_counter() if timing else 0.0
-            H, loss = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
-            if timing:
-                times[level] = 1e3 * (time.perf_counter() - t0)
-        if timing:
-            self._level_ms = times
+        H, loss = self._descend(pyramid, anchor, H0n, scale, timing)
+        if foreground is not None and outside is not None and self.leak(raw, full, outside, H) > self.auto_leak:
+            anchor, full = foreground, foreground[0]
+            H, loss = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
         loss_before = self._evaluate(query, full, H0n, scale)[0]
         accepted = loss < loss_before and self._well_conditioned(H)
         if not accepted:
@@ -489,8 +538,11 @@ class FastRefiner:
             cv2.setNumThreads(self.threads)
         try:
             for i in range(B):
-                out[i], before[i], after[i], accepted[i] = self.refine_one(gray[i], templates.anchors[int(index[i])],
-                                                                           starts[i], timing=B == 1)
+                k = int(index[i])
+                out[i], before[i], after[i], accepted[i] = self.refine_one(
+                    gray[i], templates.anchors[k], starts[i], timing=B == 1,
+                    foreground=templates.foreground[k] if templates.foreground is not None else None,
+                    outside=templates.outside[k] if templates.outside is not None else None)
         finally:
             if self.threads is not None and self.threads != previous:
                 cv2.setNumThreads(previous)
