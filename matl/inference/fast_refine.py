@@ -212,7 +212,7 @@ class FastRefiner:
             ``align``, the stage's pose.
     """
 
-    def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "frame",
+    def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
                  loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
                  min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.01,
                  threads: int | None = 1, blur: float = 0.0, start: str = "stn", auto_band: int = 1,

@@ -78,6 +78,34 @@ def test_lighting_does_not_move_the_pose_and_the_foreground_region_ignores_a_bac
     assert float(corner_error_px(foreground.query_H_anchor, true, (S, S)).max()) < 0.8
 
 
+def test_region_auto_keeps_the_frame_on_segmented_queries_and_takes_the_foreground_beside_clutter() -> None:
+    anchors, queries, true, start = scene()
+    frame = FastRefiner(region="frame").refine_images(queries, anchors, start)
+    auto = FastRefiner(region="auto")
+    segmented = auto.refine_images(queries, anchors, start)
+    assert torch.equal(segmented.query_H_anchor, frame.query_H_anchor)  # nothing beside the objects: the frame
+    templates = auto.anchor_templates(anchors)
+    assert templates.foreground is not None and templates.outside is not None
+    assert templates.nbytes > FastRefiner(region="frame").anchor_templates(anchors).nbytes
+    clutter = textured_planes(B, S, 11).flip(-1) * 0.8 + 0.1
+    on_object = warp_image((anchors.amax(1, keepdim=True) > 0).float(), true.float()) > 0.5
+    cluttered = torch.where(on_object, queries, clutter)  # a texture right up to each object's outline
+    leaks = []
+    for i in range(B):
+        level = templates.anchors[i][0]
+        H = level.norm_H_pixel @ true[i].numpy() @ level.pixel_H_norm
+        gray = (cluttered[i] * torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0).numpy()
+        leaks.append(auto.leak(gray, level, templates.outside[i], H / H[2, 2]))
+    assert min(leaks) > auto.auto_leak  # at the true pose: a textured background beside every object
+    result = auto.refine_images(cluttered, anchors, start)
+    whole = FastRefiner(region="frame").refine_images(cluttered, anchors, start)
+    after = corner_error_px(result.query_H_anchor, true, (S, S))
+    frame_error = corner_error_px(whole.query_H_anchor, true, (S, S))
+    assert float(frame_error.min()) > 5.0  # the whole frame is pulled off by the background
+    # most queries show the background beside the object after the whole-frame pass and go to the foreground pass
+    assert int((after < 0.5).sum()) >= 4 and float(after.median()) < 0.5
+
+
 def test_precomputed_anchors_equal_per_query_templates_and_batches_equal_single_queries() -> None:
     anchors, queries, _, start = scene()
     gallery_images = torch.cat([textured_planes(3, S, 7), anchors])        # the anchors are entries 3..8
@@ -149,7 +177,8 @@ def test_refined_recognizer_precomputes_the_gallery_once_and_start_stn_skips_the
 
 def test_fast_refiner_options_are_one_line_errors() -> None:
     for kwargs in ({"loss": "l1"}, {"levels": 0}, {"iterations": -1}, {"iterations": [2, -1]}, {"delta": 0.0},
-                   {"region": "all"}, {"start": "none"}, {"erode": -1}, {"threads": 0}, {"blur": -1.0}):
+                   {"region": "all"}, {"start": "none"}, {"erode": -1}, {"threads": 0}, {"blur": -1.0},
+                   {"auto_band": -1}, {"auto_leak": -0.1}, {"auto_level": -1.0}, {"auto_from": "stn"}):
         with pytest.raises(MatlError, match="refiner"):
             FastRefiner(**kwargs)
     with pytest.raises(MatlError, match="prepare"):
