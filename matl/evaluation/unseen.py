@@ -325,7 +325,8 @@ WRITERS = {"clean": _write_clean_condition, "photometric": write_photometric, "m
            "clutter": write_clutter, "view": write_view, "sizes": write_sizes}
 
 
-OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0}
+OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
+                 "verify_refine": True}
 
 
 def open_set_args(cfg: DictConfig) -> list[str]:

@@ -69,7 +69,7 @@ from matl.inference.recognizer import Prediction, embed
 from matl.inference.recognizer import Recognizer as GalleryRecognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
-from matl.inference.verify import Verification, verify_candidates
+from matl.inference.verify import CandidatePose, Verification, verify_candidates
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
 from matl.utils.errors import MatlError
 
@@ -254,6 +254,12 @@ class Recognizer:
             ``verify`` is ``ratio``). Models without an STN have no pose to verify: none.
         verify_max: the largest ``1 - ZNCC`` that verifies a pose.
         verify_blur: Gaussian smoothing of both images before the comparison, px.
+        verify_refine: pose each further candidate by the fast refinement against it (``refiner.start``'s
+            pose refined, :class:`~matl.inference.fast_refine.FastRefiner`: the recognizer's own with
+            ``refine=`` a FastRefiner, else one with ``conf/refiner/fast.yaml``'s settings, whose per-anchor
+            data is computed once per gallery when first needed) rather than by the STN and alignment stage
+            alone; with ``refine=false`` the nearest anchor is posed and verified again that way when its
+            own pose does not verify. A re-ranked answer then carries the refined pose.
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -269,7 +275,7 @@ class Recognizer:
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
                  open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
-                 gallery_fill: float = 1.0,
+                 verify_refine: bool = True, gallery_fill: float = 1.0,
                  query_fill: float = 1.0, batch_size: int = 64,
                  foreground: str | GrabCutForeground | None = "grabcut") -> None:
         if quantize not in ("none", "int8"):
@@ -294,6 +300,10 @@ class Recognizer:
             raise MatlError(f"verify_max={verify_max!r} is invalid: use a 1 - ZNCC level in [0, 2] (e.g. 0.1)")
         if isinstance(verify_blur, bool) or not isinstance(verify_blur, (int, float)) or not 0.0 <= verify_blur <= 10.0:
             raise MatlError(f"verify_blur={verify_blur!r} is invalid: use a Gaussian sigma in px in [0, 10]")
+        if not isinstance(verify_refine, bool):
+            raise MatlError(f"verify_refine={verify_refine!r} is invalid: use true or false")
+        self.verify_refine = verify_refine
+        self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = int(verify_top_k), float(verify_max), float(verify_blur)
         self.open_set_quantile = float(open_set_quantile)
@@ -341,6 +351,7 @@ class Recognizer:
     def _changed(self) -> None:
         self._built = None
         self._calibrated = None
+        self._verify_refiner = None
 
     def enrol(self, folder: str | Path, cache: bool = True) -> Recognizer:
         """Add every plane of a gallery folder ``<folder>/<object>/<plane>.{png,jpg}`` (features cached on disk)."""
@@ -491,14 +502,43 @@ class Recognizer:
         """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
         queries' empty (all-zero: transparent) pixels are left out of the comparison."""
         inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
+        pose = self._candidate_pose() if self.verify_refine else None
+        first_refined = first is not None and self.refiner is not None
         for i in range(0, len(queries), step):
             part = None if first is None else tuple(t[i:i + step] for t in first)
             chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
                                             self.verify_blur, part,
                                             None if exclude_object is None else exclude_object[i:i + step],
-                                            skip_empty=True))
+                                            skip_empty=True, candidate_pose=pose, first_refined=first_refined))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
+
+    def _candidate_pose(self) -> CandidatePose:
+        """``verify_refine``'s poses of candidates: verified after the fast refinement against each (from
+        ``refiner.start``'s pose); an answer carries that pose with ``refine=`` set, else the networks' own."""
+        if self._verify_refiner is None:
+            recognizer, gallery = self._build()
+            refiner = self.refiner if isinstance(self.refiner, FastRefiner) else FastRefiner()
+            templates = getattr(recognizer, "templates", None) if refiner is self.refiner else None
+            if templates is None:
+                templates = refiner.anchor_templates(gallery.images)  # once per gallery
+            self._verify_refiner = (refiner, templates)
+        refiner, templates = self._verify_refiner
+        inner = self._gallery_recognizer()
+
+        refined_answers = self.refiner is not None
+        align = getattr(inner, "align", None)
+
+        def pose(queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+            network = stn_H  # the pose the recognizer gives without refinement: s(), then the alignment stage
+            if align is not None and (refiner.start == "align" or not refined_answers):
+                network = align.infer(queries, inner.gallery.images[index], stn_H, warped).query_H_anchor
+            start = network if refiner.start == "align" else stn_H
+            refined = refiner(queries, index, start.double(), templates).query_H_anchor.to(stn_H.dtype)
+            return refined, refined if refined_answers else network
+
+        return pose
 
     def _statistic(self, nearest: torch.Tensor, second: torch.Tensor,
                    verified: torch.Tensor | None = None) -> torch.Tensor:

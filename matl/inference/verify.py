@@ -15,6 +15,7 @@ alike), see :mod:`matl.inference.api`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -24,11 +25,17 @@ import torch.nn.functional as F
 
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
-__all__ = ["Verification", "aligned_queries", "anchor_foreground", "verification_distance", "verify_candidates",
-           "zncc"]
+__all__ = ["CandidatePose", "Verification", "aligned_queries", "anchor_foreground", "verification_distance",
+           "verify_candidates", "zncc"]
+
+#: ``pose(queries, gallery_index, stn_H, warped) -> (query_H_anchor verified, query_H_anchor an answer carries)``
+#: of candidates (:func:`verify_candidates`)
+CandidatePose = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 #: smallest foreground (pixels) a comparison needs; below it the pair counts as unrelated (ZNCC 0)
 MIN_PIXELS = 16
+#: smallest share of the anchor's plane a comparison must cover with query data (docs/decisions.md)
+MIN_COVERAGE = 0.5
 
 
 def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
@@ -108,7 +115,8 @@ def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
-                          blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False) -> torch.Tensor:
+                          blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False,
+                          min_coverage: float = MIN_COVERAGE) -> torch.Tensor:
     """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
 
     Args:
@@ -117,6 +125,9 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         blur_sigma: Gaussian smoothing of both images before the comparison, px (0: none).
         erode: the anchor's foreground is eroded by this many px.
         skip_empty: leave out what comes from the query's empty (all-zero) pixels (:func:`aligned_queries`).
+        min_coverage: the share of the anchor's (eroded) foreground the compared pixels must cover; a pose that
+            puts most of the anchor over no query data is not compared (1, uncorrelated): a few pixels can
+            correlate by chance.
     Returns:
         ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
     """
@@ -124,10 +135,14 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         return torch.zeros(0, dtype=torch.float64)
     warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device), skip_empty)
     anchors = anchors.float()
-    mask = anchor_foreground(anchors, erode) & valid
+    plane = anchor_foreground(anchors, erode)
+    mask = plane & valid
+    covered = mask.sum((1, 2, 3)) >= min_coverage * plane.sum((1, 2, 3))
     if blur_sigma > 0:  # one call for both
         warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
-    return (1.0 - zncc(warped, anchors, mask)).cpu()
+    score = torch.where(covered, zncc(warped, anchors, mask), torch.zeros(len(anchors), dtype=torch.float64,
+                                                                         device=mask.device))
+    return (1.0 - score).cpu()
 
 
 @dataclass
@@ -155,15 +170,18 @@ class Verification:
 @torch.no_grad()
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                      exclude_object: torch.Tensor | None = None, skip_empty: bool = False) -> Verification:
+                      exclude_object: torch.Tensor | None = None, skip_empty: bool = False,
+                      candidate_pose: CandidatePose | None = None, first_refined: bool = True) -> Verification:
     """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
-    the alignment stage against that candidate (when the model has one), and verified by
-    :func:`verification_distance`. The first candidate whose ``1 - ZNCC`` is at most ``verify_max`` is
-    the answer; a query none of whose candidates verifies keeps its nearest anchor. The nearest
-    candidate is verified first; only the queries it does not verify go on, their other candidates
-    posed and compared in one batch (a handful of calls however many candidates).
+    the alignment stage against that candidate (when the model has one), or by ``pose`` (a refinement
+    against the candidate), and verified by :func:`verification_distance`. The first candidate whose
+    ``1 - ZNCC`` is at most ``verify_max`` is the answer; a query none of whose candidates verifies keeps
+    its nearest anchor. The nearest candidate is verified first with the pose it came with; only the
+    queries it does not verify go on, their other candidates posed and compared in one batch (a handful
+    of calls however many candidates); with ``candidate_pose`` and ``first_refined=False`` the nearest is among
+    them again, posed by ``pose``.
 
     Args:
         recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
@@ -176,6 +194,12 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
             None: the nearest candidate comes from the search here.
         exclude_object: ``(Q,)`` object index per query whose anchors are not candidates (the open-set
             calibration's impostors), or None.
+        candidate_pose: ``(queries (T, 3, S, S), gallery_index (T,), stn_H (T, 3, 3), warped (T, 3, S, S))
+            -> (verified (T, 3, 3), answer (T, 3, 3))``: the candidates' poses that are verified
+            (``verify_refine``: the fast refinement against each candidate) and those an answer carries
+            (the same, or the networks' pose when answers are not refined); None: the STN's, then the
+            alignment stage's, for both.
+        first_refined: whether ``first``'s pose was already refined (then the nearest is not posed again).
     """
     g = recognizer.gallery
     n = len(queries)
@@ -188,7 +212,9 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
         if getattr(recognizer, "align", None) is not None:
             H = recognizer.align.infer(queries, g.images[nearest], stn_H, warped).query_H_anchor
         first = (nearest, H, nearest_d)
-    index, pose, feature_distance = first[0].cpu().long(), first[1].cpu().double(), first[2].cpu().double()
+    # copies: the answer is changed in place below, the caller's tensors (the prediction's) must stay as they are
+    index, pose = first[0].cpu().long().clone(), first[1].cpu().double().clone()
+    feature_distance = first[2].cpu().double().clone()
     distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma, skip_empty=skip_empty)
     tried = torch.ones(n, dtype=torch.long)
     todo = torch.nonzero(distance > verify_max).flatten()
@@ -200,19 +226,24 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
                                                    exclude_object[todo])
     else:
         stn_H, warped, d = stn_H[todo], warped[todo], d[todo]
-    d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
-    k = min(top_k - 1, d.shape[1])
+    again = candidate_pose is not None and not first_refined  # the nearest candidate, posed anew by the refinement
+    if not again:
+        d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
+    k = min(top_k - (0 if again else 1), d.shape[1])
     cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
     usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
     t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
     anchors = g.images[cand[t, j]]
     H = stn_H[t]
-    if getattr(recognizer, "align", None) is not None:
+    answer_H = None  # the pose an answer carries, when not the verified one
+    if candidate_pose is not None:
+        H, answer_H = candidate_pose(x[t], cand[t, j], H, warped[t])
+    elif getattr(recognizer, "align", None) is not None:
         H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
     v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
     v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, skip_empty=skip_empty)
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
-    poses[t, j] = H.cpu().double()
+    poses[t, j] = (H if answer_H is None else answer_H).cpu().double()
     ok = v <= verify_max
     rows = torch.nonzero(ok.any(1)).flatten()      # the first that verifies, nearest first
     col = ok[rows].to(torch.int8).argmax(1)

@@ -143,9 +143,11 @@ def cluttered_query(queries: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 def test_recognizer_segments_rgb_queries_and_keeps_an_rgba_querys_alpha(tmp_path: Path, passes: int) -> None:
     gallery, queries, _ = make_files(tmp_path)
     scene, inside = cluttered_query(queries, "green_can")
-    plain = stub_recognizer(threshold=None, foreground="none").enrol(gallery)
+    # verification off: the foreground step alone (verification's re-ranking would also find the can)
+    plain = stub_recognizer(threshold=None, foreground="none", verify_top_k=0).enrol(gallery)
     assert plain.predict(scene).object != "green_can"  # the background's blue wins the mean colour
-    rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes, alpha_band_px=0)).enrol(gallery)
+    rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes, alpha_band_px=0),
+                          verify_top_k=0).enrol(gallery)
     assert rec.options()["foreground"]["passes"] == passes
     assert rec.predict(scene).object == "green_can"
     # an RGBA query uses its own alpha, not the crop's GrabCut: a mask holding the neighbour too

@@ -123,3 +123,42 @@ def test_candidates_are_tried_nearest_first_until_one_verifies() -> None:
     first = (torch.tensor([2, 1]), torch.eye(3).repeat(2, 1, 1), torch.tensor([5.0, 5.0]))
     v = verify_candidates(rec, queries, 3, 0.1, first=first)
     assert v.tried.tolist() == [1, 3] and v.gallery_index.tolist() == [2, 1] and v.verified.tolist() == [True, False]
+
+
+def test_a_given_answer_is_not_changed_in_place_and_candidate_poses_are_used() -> None:
+    a, b, c = textured(10), textured(11), textured(12)
+    anchors = torch.cat([a, b, c])
+    queries = c.clone()
+    queries[0, 0, 0, 0] = 0.0
+    rec = StubRecognizer(anchors, [0, 1, 2], torch.tensor([[0.0], [1.0], [2.0]]), torch.tensor([[0.1]]))
+    first = (torch.tensor([0]), torch.eye(3)[None], torch.tensor([0.1]))
+    kept = tuple(t.clone() for t in first)
+    v = verify_candidates(rec, queries, 3, 0.1, first=first)
+    assert v.gallery_index.tolist() == [2]  # re-ranked to c ...
+    assert all(torch.equal(x, y) for x, y in zip(first, kept, strict=True))  # ... the given answer untouched
+
+    # a candidate pose: verified with the first matrix, the answer carries the second
+    carried = torch.diag(torch.tensor([1.0, 1.0, 1.0]))
+    carried[0, 2] = 5.0
+    seen: list[list[int]] = []
+
+    def pose(x: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor):
+        seen.append(index.tolist())
+        return stn_H, carried.expand_as(stn_H)
+
+    v = verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=False)
+    assert seen == [[0, 1, 2]]  # the nearest is posed again with the others
+    assert v.gallery_index.tolist() == [2] and torch.equal(v.query_H_anchor[0], carried.double())
+    seen.clear()
+    verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=True)
+    assert seen == [[1, 2]]
+
+
+def test_a_pose_that_puts_the_plane_over_no_query_data_is_not_compared() -> None:
+    anchor = textured(1).float()
+    query = anchor.clone()
+    query[..., :, S // 3:] = 0.0  # RGBA query whose alpha keeps a third of the plane: the rest is no data
+    full = verification_distance(query, torch.eye(3)[None], anchor, blur_sigma=0.0, skip_empty=True, min_coverage=0.0)
+    assert float(full[0]) == pytest.approx(0.0, abs=1e-6)  # the third that is there matches exactly ...
+    covered = verification_distance(query, torch.eye(3)[None], anchor, blur_sigma=0.0, skip_empty=True)
+    assert float(covered[0]) == 1.0  # ... but covers less than half the plane: not a verification
