@@ -183,7 +183,8 @@ def test_verification_accepts_an_enrolled_product_and_rejects_an_unenrolled_one(
         assert torch.equal(value, plain.calibration()[key])
     again = lenient.predict(read_rgb(queries / "green_can.png"))
     assert again.statistic == pytest.approx(unenrolled.statistic) and again.verification > lenient.verify_max
-    for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"}):
+    for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"},
+                {"verify_refine": "yes"}):
         with pytest.raises(MatlError, match=next(iter(bad))):
             stub_recognizer(**bad)
 

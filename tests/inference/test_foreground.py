@@ -146,6 +146,9 @@ def test_recognizer_segments_rgb_queries_and_keeps_an_rgba_querys_alpha(tmp_path
     # verification off: the foreground step alone (verification's re-ranking would also find the can)
     plain = stub_recognizer(threshold=None, foreground="none", verify_top_k=0).enrol(gallery)
     assert plain.predict(scene).object != "green_can"  # the background's blue wins the mean colour
+    # with verification the nearest anchor's pose does not verify, a further candidate does: the answer is re-ranked
+    reranked = stub_recognizer(threshold=None, foreground="none").enrol(gallery).predict(scene)
+    assert reranked.object == "green_can" and reranked.verification <= 0.1
     rec = stub_recognizer(threshold=None, foreground=GrabCutForeground(passes=passes, alpha_band_px=0),
                           verify_top_k=0).enrol(gallery)
     assert rec.options()["foreground"]["passes"] == passes
