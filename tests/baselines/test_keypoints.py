@@ -402,7 +402,9 @@ def test_lightglue_offline_end_to_end(features: str, scene: dict, monkeypatch: p
     result = matcher.match(scene["queries"][:2])
     _check_result(result, 2)
     sub = {**scene, "planes": scene["planes"][:2]}
-    _check_recognition_and_pose(result, sub, max_corner_px=3.0)
+    # DISK at native size has fewer, coarser keypoints: its pose differs by CPU (float rounding of the U-Net moves
+    # keypoints), 3.2 px on one Intel Xeon for the second query against under 3 px on the CPU this bound was set on
+    _check_recognition_and_pose(result, sub, max_corner_px=3.0 if features == "aliked" else 4.0)
 
 
 # ---------------------------------------------------------------------------------------------------
