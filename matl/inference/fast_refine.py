@@ -11,7 +11,7 @@ few hundred microseconds on one CPU core:
   over a gallery, i.e. at enrolment) and looked up per query. The update is
   ``query_H_anchor <- query_H_anchor @ inv(I + D(dp))`` in normalised coordinates
   (``align_corners=True`` of the full-resolution image, so one matrix serves every level).
-* **Objective** (``region=frame``, the default: the photometric refiner's own): ``mean rho(r)`` over
+* **Objective** (``region=frame``: the photometric refiner's own): ``mean rho(r)`` over
   the anchor frame with ``r = (Iq(H x) - gain * A(x) - bias * F(x)) / scale``, ``A`` the anchor's
   luminance, ``F`` its foreground (non-zero pixels; backgrounds are 0 by convention), ``gain`` and
   ``bias`` the least-squares fit over ``F`` at the current pose (a change of the query's exposure or
@@ -19,9 +19,11 @@ few hundred microseconds on one CPU core:
   background stays in the loss (0 on both sides at the right pose): it keeps the object's outline in
   the objective. ``region=foreground``: only the anchor's foreground eroded by ``erode`` px counts
   (whatever the query shows around the object costs nothing; for queries with a background).
-  ``rho`` is ``l2``, ``huber`` or ``cauchy``, minimised by iteratively re-weighted Gauss-Newton
-  (the precomputed Hessian whenever every weight is 1). Since ``T = gain * A + bias * F``, the step is
-  ``dp = (sd^T W sd)^-1 sd^T W r / gain`` (the outline term ``bias * grad F`` is left out of ``sd``).
+  ``region=auto`` (the default): the whole frame, then the foreground alone for a query that shows
+  something beside its object at that pose (:meth:`FastRefiner.leak`). ``rho`` is ``l2``, ``huber`` or
+  ``cauchy``, minimised by iteratively re-weighted Gauss-Newton (the precomputed Hessian whenever every
+  weight is 1). Since ``T = gain * A + bias * F``, the step is ``dp = (sd^T W sd)^-1 sd^T W r / gain``
+  (the outline term ``bias * grad F`` is left out of ``sd``).
 * **Levenberg-Marquardt safeguard**: a step is kept only if the loss at the level drops; otherwise the
   level goes back to its best pose with the damping raised tenfold (``damping``, relative to the
   Hessian's diagonal), so the loss of each level never increases.
@@ -192,8 +194,9 @@ class FastRefiner:
         iterations: most Gauss-Newton steps per pyramid level: one number for every level, or a list
             per level from the finest (e.g. ``[2, 3, 4]``).
         levels: pyramid levels (1: full resolution only); the coarsest keeps at least ``min_size`` px per side.
-        region: ``frame`` (the whole anchor frame, background included: the outline counts) or
-            ``foreground`` (the anchor's foreground eroded by ``erode`` px only: a query's background costs nothing).
+        region: ``frame`` (the whole anchor frame, background included: the outline counts),
+            ``foreground`` (the anchor's foreground eroded by ``erode`` px only: a query's background costs nothing)
+            or ``auto`` (``frame``, then ``foreground`` for a query with something beside its object).
         loss: ``l2``, ``huber`` or ``cauchy`` on the residuals.
         delta: robust-loss scale, in units of the query foreground's std.
         damping: initial Levenberg-Marquardt damping, relative to the Hessian's diagonal (raised tenfold
@@ -210,6 +213,9 @@ class FastRefiner:
             ``stn``, ``s()``'s pose, skipping a model's learned alignment stage (``model.align``: the
             refinement does its job, and it costs more than the refinement at a batch of one), or
             ``align``, the stage's pose.
+        auto_band, auto_level, auto_leak: ``region=auto``'s test (:meth:`leak`): query pixels brighter than
+            ``auto_level`` more than ``auto_band`` px outside the anchor's foreground, above ``auto_leak`` of its area.
+        auto_from: ``region=auto``'s foreground pass starts from the whole-frame result (``refined``) or the start.
     """
 
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
@@ -277,45 +283,47 @@ class FastRefiner:
             return image
         return cv2.GaussianBlur(image, (0, 0), self.blur, borderType=cv2.BORDER_CONSTANT)
 
-    def _anchor(self, gray: np.ndarray, fg: np.ndarray, region_kind: str) -> list[AnchorLevel]:
+    def _anchor(self, gray: np.ndarray, fg: np.ndarray, kinds: Sequence[str]) -> list[list[AnchorLevel]]:
+        """One anchor's levels for each region kind in ``kinds`` (``frame`` / ``foreground``), finest first; the
+        pyramid and the gradients are computed once for all of them."""
         size = gray.shape
         gray = self._blurred(gray)
-        out = []
+        out: list[list[AnchorLevel]] = [[] for _ in kinds]
         masks = _pyramid(fg, self.levels, self.min_size)
+        kernel = np.ones((2 * self.erode + 1, 2 * self.erode + 1), np.uint8)
         for level, image in enumerate(_pyramid(gray, self.levels, self.min_size)):
             h, w = image.shape
             mask = (masks[level] > _FOREGROUND).astype(np.float32)  # the blurred support at coarse levels
             image = image * mask
-            if region_kind == "frame":
-                region = None
-            else:
-                kernel = np.ones((2 * self.erode + 1, 2 * self.erode + 1), np.uint8)
-                region = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) if self.erode \
-                    else mask.copy()
             padded = np.pad(image, 1, mode="edge")  # central differences, one-sided at the border
             gx = (padded[1:-1, 2:] - padded[1:-1, :-2]) * 0.5
             gy = (padded[2:, 1:-1] - padded[:-2, 1:-1]) * 0.5
             norm_H_pixel = self._norm_H_pixel(level, size)
+            pixel_H_norm = np.linalg.inv(norm_H_pixel)
             gx, gy = gx / norm_H_pixel[0, 0], gy / norm_H_pixel[1, 1]  # per normalised unit
-            inside = (gx != 0) | (gy != 0)
-            if region is not None:
-                inside &= region > 0
-            index = np.flatnonzero(inside).astype(np.int32)
-            x = (index % w) * norm_H_pixel[0, 0] - 1.0
-            y = (index // w) * norm_H_pixel[1, 1] - 1.0
-            gxs, gys = gx.ravel()[index], gy.ravel()[index]
-            radial = gxs * x + gys * y
-            sd = np.stack([gxs * x, gxs * y, gxs, gys * x, gys * y, gys, -radial * x, -radial * y])  # (8, n)
-            fit = mask if region is None else region  # the gain / bias fit's support: the loss's foreground
-            count = float(fit.sum())
-            mean = float((image * fit).sum() / max(count, 1.0))
-            var = float(((image - mean) ** 2 * fit).sum())
-            image = image if region is None else image * region
-            out.append(AnchorLevel(
-                np.ascontiguousarray(image, dtype=np.float32), np.ascontiguousarray(fit, dtype=np.float32),
-                None if region is None else np.ascontiguousarray(region, dtype=np.float32), (int(h), int(w)), count,
-                mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
-                np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, np.linalg.inv(norm_H_pixel)))
+            textured = (gx != 0) | (gy != 0)
+            for levels, kind in zip(out, kinds, strict=True):
+                region = None
+                if kind != "frame":
+                    region = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) if self.erode \
+                        else mask.copy()
+                inside = textured if region is None else textured & (region > 0)
+                index = np.flatnonzero(inside).astype(np.int32)
+                x = (index % w) * norm_H_pixel[0, 0] - 1.0
+                y = (index // w) * norm_H_pixel[1, 1] - 1.0
+                gxs, gys = gx.ravel()[index], gy.ravel()[index]
+                radial = gxs * x + gys * y
+                sd = np.stack([gxs * x, gxs * y, gxs, gys * x, gys * y, gys, -radial * x, -radial * y])  # (8, n)
+                fit = mask if region is None else region  # the gain / bias fit's support: the loss's foreground
+                count = float(fit.sum())
+                mean = float((image * fit).sum() / max(count, 1.0))
+                var = float(((image - mean) ** 2 * fit).sum())
+                levels.append(AnchorLevel(
+                    np.ascontiguousarray(image if region is None else image * region, dtype=np.float32),
+                    np.ascontiguousarray(fit, dtype=np.float32),
+                    None if region is None else np.ascontiguousarray(region, dtype=np.float32), (int(h), int(w)),
+                    count, mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
+                    np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, pixel_H_norm))
         return out
 
     @torch.no_grad()
@@ -326,11 +334,13 @@ class FastRefiner:
         start = time.perf_counter()
         gray = _luminance(anchors)
         fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
-        frame_kind = "foreground" if self.region == "foreground" else "frame"
-        templates = [self._anchor(gray[i], fg[i], frame_kind) for i in range(len(gray))]
+        # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
+        kinds = {"frame": ("frame",), "foreground": ("foreground",), "auto": ("frame", "foreground")}[self.region]
+        per_anchor = [self._anchor(gray[i], fg[i], kinds) for i in range(len(gray))]
+        templates = [levels[0] for levels in per_anchor]
         foreground = outside = None
         if self.region == "auto":
-            foreground = [self._anchor(gray[i], fg[i], "foreground") for i in range(len(gray))]
+            foreground = [levels[1] for levels in per_anchor]
             size = 2 * self.auto_band + 1
             kernel = np.ones((size, size), np.uint8)
             outside = [(cv2.dilate((f > 0).astype(np.uint8), kernel) == 0).astype(np.uint8) for f in fg]
