@@ -140,9 +140,7 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
     covered = mask.sum((1, 2, 3)) >= min_coverage * plane.sum((1, 2, 3))
     if blur_sigma > 0:  # one call for both
         warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
-    score = torch.where(covered, zncc(warped, anchors, mask), torch.zeros(len(anchors), dtype=torch.float64,
-                                                                         device=mask.device))
-    return (1.0 - score).cpu()
+    return (1.0 - zncc(warped, anchors, mask).masked_fill(~covered, 0.0)).cpu()
 
 
 @dataclass
@@ -175,13 +173,13 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
-    the alignment stage against that candidate (when the model has one), or by ``pose`` (a refinement
+    the alignment stage against that candidate (when the model has one), or by ``candidate_pose`` (a refinement
     against the candidate), and verified by :func:`verification_distance`. The first candidate whose
     ``1 - ZNCC`` is at most ``verify_max`` is the answer; a query none of whose candidates verifies keeps
     its nearest anchor. The nearest candidate is verified first with the pose it came with; only the
     queries it does not verify go on, their other candidates posed and compared in one batch (a handful
     of calls however many candidates); with ``candidate_pose`` and ``first_refined=False`` the nearest is among
-    them again, posed by ``pose``.
+    them again, posed by ``candidate_pose``.
 
     Args:
         recognizer: a :class:`matl.inference.recognizer.Recognizer` (its networks, gallery and features).
