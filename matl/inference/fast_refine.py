@@ -101,14 +101,20 @@ class AnchorLevel:
     hessian: np.ndarray
     norm_H_pixel: np.ndarray
     pixel_H_norm: np.ndarray
+    #: derived once (not arguments): flat views of ``image`` and ``fg``, ``1 / var``, ``1 / count``, and
+    #: ``corner_J`` ``(8, 8)``: ``dp @ corner_J`` is the motion of the 4 corners in this level's pixels
+    flat_image: np.ndarray = field(init=False, repr=False)
+    flat_fg: np.ndarray = field(init=False, repr=False)
+    inv_var: float = field(init=False, repr=False)
+    inv_count: float = field(init=False, repr=False)
+    corner_J: np.ndarray = field(init=False, repr=False)
 
-    @property
-    def inv_var(self) -> float:
-        return 1.0 / max(self.var, 1e-12)
-
-    @property
-    def inv_count(self) -> float:
-        return 1.0 / max(self.count, 1.0)
+    def __post_init__(self) -> None:
+        h, w = self.size
+        self.flat_image, self.flat_fg = self.image.ravel(), self.fg.ravel()
+        self.inv_var = 1.0 / max(self.var, 1e-12)
+        self.inv_count = 1.0 / max(self.count, 1.0)
+        self.corner_J = _CORNER_J * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)
 
     @property
     def nbytes(self) -> int:
@@ -146,7 +152,7 @@ class AnchorTemplates:
         return held + sum(mask.nbytes for mask in self.outside or ())
 
 
-_EYE8 = np.eye(8)
+_DIAGONAL = np.diag_indices(8)
 
 
 def _inverse_update(p: np.ndarray) -> np.ndarray:
@@ -377,8 +383,8 @@ class FastRefiner:
         warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
                                      borderValue=0)
         a, f, flat = anchor.image, anchor.fg, warped.ravel()
-        s_fw = float(np.dot(f.ravel(), flat))
-        gain = (float(np.dot(a.ravel(), flat)) - anchor.mean * s_fw) * anchor.inv_var
+        s_fw = float(np.dot(anchor.flat_fg, flat))
+        gain = (float(np.dot(anchor.flat_image, flat)) - anchor.mean * s_fw) * anchor.inv_var
         bias = s_fw * anchor.inv_count - gain * anchor.mean
         r = cv2.scaleAdd(a, -gain, warped)               # warped - gain * A
         if bias != 0.0:
@@ -414,27 +420,29 @@ class FastRefiner:
     def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
                ) -> tuple[np.ndarray, float]:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose and its loss."""
-        h, w = anchor.size
-        corner_J = _CORNER_J * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)  # dp -> corner motion, px of the level
         loss, r, gain, robust = self._evaluate(query, anchor, H, scale)
         lam = self.damping
-        A = b = None
+        A = b = diagonal = None
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
                 break
             if A is None:  # the normal equations at the current (best) pose
                 A, b = self._normal_equations(r, anchor, gain, scale, robust)
-            ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_CHOLESKY)
+                diagonal = A.diagonal().copy()
+            damped = A.copy()  # A + lam * diag(A) + 1e-9 I, summed in that order
+            damped[_DIAGONAL] += lam * diagonal
+            damped[_DIAGONAL] += 1e-9
+            ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_CHOLESKY)
             if not ok:
-                ok, dp = cv2.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * _EYE8, b, flags=cv2.DECOMP_SVD)
+                ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_SVD)
             dp = dp.ravel()
-            if not ok or not np.all(np.isfinite(dp)):
+            if not ok or not math.isfinite(float(dp.sum())):  # a non-finite entry makes the sum so
                 break
             candidate = H @ _inverse_update(dp)
             candidate = candidate / candidate[2, 2]
             cand_loss, cand_r, cand_gain, cand_robust = self._evaluate(query, anchor, candidate, scale)
-            motion = dp @ corner_J
-            step = float(np.sqrt(motion[0::2] ** 2 + motion[1::2] ** 2).max())
+            motion = dp @ anchor.corner_J  # px of the level
+            step = math.sqrt(float((motion[0::2] ** 2 + motion[1::2] ** 2).max()))
             if cand_loss < loss:
                 H, loss, r, gain, robust = candidate, cand_loss, cand_r, cand_gain, cand_robust
                 lam = max(lam * 0.1, 1e-9)
