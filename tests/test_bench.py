@@ -14,6 +14,7 @@ import torch
 
 from matl.evaluation.speed import REQUIRED_KEYS, bench_options, measure_extra_baselines, run_bench
 from matl.utils.errors import MatlError
+from matl.utils.timing import median_batch_query_ms
 from tests.baselines.test_keypoints import N_ANCHORS, scene  # noqa: F401  (the module-scoped fixture)
 from tests.conftest import compose_config
 
@@ -52,6 +53,12 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
     assert len(parts["refine_level_ms"]) == 3 and all(ms > 0 for ms in parts["refine_level_ms"])  # 32, 16, 8 px
     assert float(timing["notes"]["refine_templates_mb"]) > 0
 
+    # a frame's crops in one call (bench_quick: 2 a call, one timed batch), every method on the same queries
+    batched, how = saved["query_ms_batch"], saved["batch_timing"]
+    assert set(batched) == {"matl", "matl_refine", "sift_ransac"} and all(ms > 0 for ms in batched.values())
+    assert how["batch"] == 2 and how["batches"] == 1 and set(how["threads"]) == set(batched)
+    assert math.isclose(saved["speedup_vs_sift_refine_batch"], batched["sift_ransac"] / batched["matl_refine"])
+
     scaling = saved["gallery_scaling"]
     assert [row["anchors"] for row in scaling] == [600, 2000]
     fixed = saved["gallery_scaling_info"]["fixed_query_ms"]
@@ -73,6 +80,22 @@ def test_bench_rejects_bad_sizes(tmp_path: Path) -> None:
     cfg = compose_config("bench", ["bench.query_threads=0"], tmp_path)
     with pytest.raises(MatlError, match=r"bench\.query_threads=0 is invalid"):
         run_bench(cfg)
+    cfg = compose_config("bench", ["bench.batch=-1"], tmp_path)
+    with pytest.raises(MatlError, match=r"bench\.batch=-1 is invalid"):
+        run_bench(cfg)
+
+
+def test_batch_query_ms_is_per_query_over_whole_batches() -> None:
+    calls: list[int] = []
+
+    def predict(batch: torch.Tensor) -> None:
+        calls.append(len(batch))
+
+    queries = torch.zeros(11, 3, 4, 4)
+    assert median_batch_query_ms(predict, queries, batch=4, warmup=1) >= 0
+    assert calls == [4, 4]  # the last partial batch is left out; the first is the untimed warm-up
+    with pytest.raises(ValueError, match="do not make 3 batches of 4"):
+        median_batch_query_ms(predict, queries, batch=4, warmup=2)
 
 
 # ------------------------------------------------------------------------ bench.baselines (extra baselines)

@@ -27,7 +27,7 @@ from matl.utils.config import validate_config
 from matl.utils.errors import CONF_DIR, MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
-from matl.utils.timing import median_query_ms
+from matl.utils.timing import median_batch_query_ms, median_query_ms
 
 # matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
 
@@ -57,10 +57,10 @@ def bench_options(cfg: DictConfig) -> DictConfig:
     options = cfg.bench
     if options.get("quick"):
         options = OmegaConf.merge(options, cfg.get("bench_quick") or {})
-    for key in ("train_steps", "queries", "scaling_queries"):
+    for key in ("train_steps", "queries", "scaling_queries", "batch_count"):
         if not isinstance(options[key], int) or options[key] < 1:
             raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 1")
-    for key in ("train_warmup", "query_warmup", "scaling_warmup", "render_objects"):
+    for key in ("train_warmup", "query_warmup", "scaling_warmup", "render_objects", "batch"):
         if not isinstance(options[key], int) or options[key] < 0:
             raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 0")
     threads = options.get("query_threads")
@@ -187,6 +187,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     onnx = measure_onnx(model, gallery, queries, warmup, counts, device)  # with onnxruntime installed
     query_ms.update(onnx.pop("query_ms"))
     breakdown: dict[str, Any] = {}
+    refined = refined_int8 = None
     if options.refine:
         refiner = instantiate_node(cfg.refiner, "refiner")
         start = time.perf_counter()
@@ -225,6 +226,12 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
     extra = measure_extra_baselines(cfg, options, gallery, cpu_queries, warmup, counts)  # bench.baselines
     query_ms.update(extra.pop("query_ms"))
+    batched: dict[str, Any] = {}
+    if options.batch:  # the crops of one camera frame in one call
+        methods = {"matl": _synced(recognizer, device), "matl_refine": refined and _synced(refined, device),
+                   "matl_int8_refine": refined_int8 and _synced(refined_int8, device), "sift_ransac": baseline}
+        batched = measure_batches(options, datamodule, {k: v for k, v in methods.items() if v is not None}, counts,
+                                  device)
 
     timing = {
         "queries": count, "warmup": warmup, "statistic": "median over single-query calls (batch of 1)",
@@ -249,7 +256,37 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     }
     if notes:
         timing["notes"] = notes
-    return {"query_ms": query_ms, "query_timing": timing}
+    return {"query_ms": query_ms, "query_timing": timing, **batched}
+
+
+def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Callable[[torch.Tensor], Any]],
+                    counts: list[int], device: torch.device) -> dict[str, Any]:
+    """``query_ms_batch``: milliseconds per query when ``bench.batch`` queries (the crops of one camera frame) are
+    answered in one call, the median over ``bench.batch_count`` batches after one untimed, the same test queries for
+    every method, each at every thread count of ``counts`` (torch's, and OpenCV's) and kept at its fastest. MATL
+    batches its networks and search (and refines query by query); a keypoint baseline answers query by query."""
+    batch, count = int(options.batch), int(options.batch_count)
+    queries = _query_images(datamodule, batch * (count + 1), device)
+    if len(queries) < batch * (count + 1):
+        raise MatlError(f"data.test_queries={len(queries)} is smaller than bench.batch x (bench.batch_count + 1) "
+                        f"= {batch * (count + 1)}")
+    ms: dict[str, float] = {}
+    threads: dict[str, int] = {}
+    for name, predict in methods.items():
+        inputs = queries if name.startswith("matl") else queries.cpu()
+        by_threads = {}
+        for n in counts:
+            with opencv_threads(n):
+                by_threads[n] = median_batch_query_ms(predict, inputs, batch, 1, n)
+        threads[name] = min(by_threads, key=lambda n: by_threads[n])
+        ms[name] = by_threads[threads[name]]
+    out: dict[str, Any] = {"query_ms_batch": ms, "batch_timing": {
+        "batch": batch, "batches": count, "threads": threads,
+        "statistic": "median over batches of (batch wall clock / batch), one untimed batch first"}}
+    for name in ("matl_refine", "matl_int8_refine"):
+        if ms.get(name) and ms.get("sift_ransac"):
+            out[f"speedup_vs_sift_{name.removeprefix('matl_')}_batch"] = ms["sift_ransac"] / ms[name]
+    return out
 
 
 def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.Tensor, warmup: int,
@@ -731,6 +768,13 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
         table.add_row("query_ms.matl_int8_refine", _fmt(q.get("matl_int8_refine")), "int8 query path + refine=true")
         table.add_row("speedup_int8_vs_sift_refine", _fmt(results.get("speedup_int8_vs_sift_refine"), 1),
                       "sift_ransac / matl_int8_refine")
+    batched = results.get("query_ms_batch") or {}
+    if batched:
+        size = results["batch_timing"]["batch"]
+        table.add_row(f"query_ms_batch ({size} a call)", "", ", ".join(f"{k} {_fmt(v)}" for k, v in batched.items()))
+        for key in ("speedup_vs_sift_refine_batch", "speedup_vs_sift_int8_refine_batch"):
+            if key in results:
+                table.add_row(key, _fmt(results[key], 1), f"per query, {size} queries a call")
     parts = t.get("breakdown") or {}
     if parts:
         names = [k for k in ("networks_ms", "stn_ms", "features_ms", "search_ms", "align_ms", "refine_ms")

@@ -50,6 +50,31 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
 
 
 @torch.no_grad()
+def median_batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, batch: int,
+                          warmup: int = 1, threads: int | None = None) -> float:
+    """Median milliseconds *per query* of ``predict`` on consecutive batches of ``batch`` queries (the crops
+    of one camera frame answered in one call): each batch's wall clock divided by ``batch``.
+
+    Args:
+        predict: as :func:`median_query_ms`'s, called on ``(batch, 3, H, W)``.
+        queries: ``(Q, 3, H, W)``, ``Q >= (warmup + 1) * batch``; a last partial batch is left out.
+        batch: queries per call (>= 1).
+        warmup: first batches run untimed.
+        threads: torch's intra-op threads during the measurement (None: leave them).
+    """
+    if batch < 1 or len(queries) < (warmup + 1) * batch:
+        raise ValueError(f"{len(queries)} queries do not make {warmup + 1} batches of {batch}")
+    times = []
+    with torch_threads(threads):
+        for k, first in enumerate(range(0, len(queries) - batch + 1, batch)):
+            start = time.perf_counter()
+            predict(queries[first:first + batch])
+            if k >= warmup:
+                times.append((time.perf_counter() - start) * 1000.0 / batch)
+    return float(torch.tensor(times).median())
+
+
+@torch.no_grad()
 def measure_query_ms(model, datamodule, num_queries: int = 50, warmup: int = 5) -> float:
     """Median milliseconds of MATL inference on one query (batch of 1), gallery features in memory."""
     recognizer = model.build_recognizer(datamodule.gallery)
