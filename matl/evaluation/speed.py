@@ -27,7 +27,7 @@ from matl.utils.config import validate_config
 from matl.utils.errors import CONF_DIR, MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
-from matl.utils.timing import median_batch_query_ms, median_query_ms
+from matl.utils.timing import batch_query_ms, median_query_ms
 
 # matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
 
@@ -262,9 +262,10 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
 def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Callable[[torch.Tensor], Any]],
                     counts: list[int], device: torch.device) -> dict[str, Any]:
     """``query_ms_batch``: milliseconds per query when ``bench.batch`` queries (the crops of one camera frame) are
-    answered in one call, the median over ``bench.batch_count`` batches after one untimed, the same test queries for
-    every method, each at every thread count of ``counts`` (torch's, and OpenCV's) and kept at its fastest. MATL
-    batches its networks and search (and refines query by query); a keypoint baseline answers query by query."""
+    answered in one call: the wall clock of ``bench.batch_count`` batches (after one untimed) over their queries, a
+    throughput, so every slow query counts in full (unlike ``query_ms``'s median); the same test queries for every
+    method, each at every thread count of ``counts`` (torch's, and OpenCV's) and kept at its fastest. MATL batches
+    its networks and search (and refines query by query); a keypoint baseline answers query by query."""
     batch, count = int(options.batch), int(options.batch_count)
     queries = _query_images(datamodule, batch * (count + 1), device)
     if len(queries) < batch * (count + 1):
@@ -277,12 +278,13 @@ def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Cal
         by_threads = {}
         for n in counts:
             with opencv_threads(n):
-                by_threads[n] = median_batch_query_ms(predict, inputs, batch, 1, n)
+                by_threads[n] = batch_query_ms(predict, inputs, batch, 1, n)
         threads[name] = min(by_threads, key=lambda n: by_threads[n])
         ms[name] = by_threads[threads[name]]
     out: dict[str, Any] = {"query_ms_batch": ms, "batch_timing": {
         "batch": batch, "batches": count, "threads": threads,
-        "statistic": "median over batches of (batch wall clock / batch), one untimed batch first"}}
+        "statistic": "wall clock of the timed batches / their queries (a throughput: a slow query counts in "
+                     "full), after one untimed batch"}}
     for name in ("matl_refine", "matl_int8_refine"):
         if ms.get(name) and ms.get("sift_ransac"):
             out[f"speedup_vs_sift_{name.removeprefix('matl_')}_batch"] = ms["sift_ransac"] / ms[name]
@@ -639,11 +641,11 @@ def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
         return None, "untrained: the default config's model, randomly initialised (speed does not depend on weights)"
     from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 
-    pretrained = str(ckpt_path) == "pretrained"
+    pretrained = str(ckpt_path) in ("pretrained", "pretrained_fast")
     if pretrained:
-        from matl.inference.api import PRETRAINED
+        from matl.inference.api import resolve_checkpoint_keyword
 
-        ckpt_path = PRETRAINED
+        ckpt_path = resolve_checkpoint_keyword(str(ckpt_path))
     ckpt = load_checkpoint(ckpt_path)
     size, num_anchors = checkpoint_info(ckpt, ckpt_path)
     config = ckpt.get("matl_config")

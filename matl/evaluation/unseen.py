@@ -728,7 +728,9 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
     from matl.utils.io import write_json
 
     conditions, methods = _check(cfg)
-    ckpt_path = Path(cfg.ckpt).expanduser().resolve()
+    from matl.inference.api import resolve_checkpoint_keyword
+
+    ckpt_path = Path(resolve_checkpoint_keyword(str(cfg.ckpt))).expanduser().resolve()  # pretrained[_fast]: shipped
     ckpt = load_checkpoint(ckpt_path)
     size, num_anchors = checkpoint_info(ckpt, ckpt_path)
     train_data = (ckpt.get("matl_config") or {}).get("data") or {}

@@ -73,12 +73,34 @@ from matl.inference.verify import CandidatePose, Verification, verify_candidates
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
 from matl.utils.errors import MatlError
 
-__all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model"]
+__all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model", "shipped_checkpoint"]
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
 GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
 PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
+#: the fast model (experiment=pretrained_fast: a cheaper s(), no alignment stage; meant for refine=True)
+PRETRAINED_FAST = PRETRAINED.with_name("matl_fast.ckpt")
+#: the ``ckpt=`` keywords of the command line that name the shipped models, and ``Recognizer.pretrained``'s names
+SHIPPED = {"pretrained": "default", "pretrained_fast": "fast"}
+
+
+def shipped_checkpoint(name: str = "default") -> Path:
+    """The path of a model shipped inside the package, ``default`` or ``fast``; a one-line error when this install
+    lacks it."""
+    paths = {"default": PRETRAINED, "fast": PRETRAINED_FAST}
+    if name not in paths:
+        raise MatlError(f"no shipped model is called {name!r}: use one of {', '.join(paths)}")
+    if not paths[name].is_file():
+        raise MatlError(f"no pretrained model ships with this version of matl ({paths[name]} is missing): "
+                        "train one with python -m matl.train and use "
+                        "Recognizer.from_checkpoint(<run>/checkpoints/best.ckpt)")
+    return paths[name]
+
+
+def resolve_checkpoint_keyword(ckpt: Any) -> Any:
+    """``ckpt=pretrained`` / ``pretrained_fast`` -> the shipped model's path; any other value as it is."""
+    return str(shipped_checkpoint(SHIPPED[ckpt])) if isinstance(ckpt, str) and ckpt in SHIPPED else ckpt
 
 
 @dataclass
@@ -325,13 +347,10 @@ class Recognizer:
         return cls(model, size, num_anchors, sha, **options)
 
     @classmethod
-    def pretrained(cls, **options: Any) -> Recognizer:
-        """The model shipped inside the package (loaded offline)."""
-        if not PRETRAINED.is_file():
-            raise MatlError(f"no pretrained model ships with this version of matl ({PRETRAINED} is missing): "
-                            "train one with python -m matl.train and use "
-                            "Recognizer.from_checkpoint(<run>/checkpoints/best.ckpt)")
-        return cls.from_checkpoint(PRETRAINED, **options)
+    def pretrained(cls, name: str = "default", **options: Any) -> Recognizer:
+        """A model shipped inside the package (loaded offline): ``default`` (with its alignment stage: the best
+        pose without refinement) or ``fast`` (a cheaper s(), for ``refine=True``; docs/speed.md)."""
+        return cls.from_checkpoint(shipped_checkpoint(name), **options)
 
     # ------------------------------------------------------------------------------------ gallery
     @property

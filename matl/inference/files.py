@@ -232,6 +232,13 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
                             "missing); train one (python -m matl.train) and pass its checkpoints/best.ckpt")
         with open_dict(cfg):
             cfg.ckpt = str(PRETRAINED)
+    elif cfg.ckpt in ("pretrained", "pretrained_fast"):  # a shipped model by name
+        from omegaconf import open_dict
+
+        from matl.inference.api import resolve_checkpoint_keyword
+
+        with open_dict(cfg):
+            cfg.ckpt = resolve_checkpoint_keyword(cfg.ckpt)
     baseline = None
     if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
         from matl.baselines.files import baseline_recognizer_from_config

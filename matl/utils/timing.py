@@ -50,10 +50,11 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
 
 
 @torch.no_grad()
-def median_batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, batch: int,
-                          warmup: int = 1, threads: int | None = None) -> float:
-    """Median milliseconds *per query* of ``predict`` on consecutive batches of ``batch`` queries (the crops
-    of one camera frame answered in one call): each batch's wall clock divided by ``batch``.
+def batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, batch: int,
+                   warmup: int = 1, threads: int | None = None) -> float:
+    """Milliseconds *per query* of ``predict`` on consecutive batches of ``batch`` queries (the crops of one
+    camera frame answered in one call): the wall clock of every timed batch together divided by the queries in
+    them, i.e. the throughput of a stream of frames (a slow query counts in full, as it delays its frame).
 
     Args:
         predict: as :func:`median_query_ms`'s, called on ``(batch, 3, H, W)``.
@@ -64,14 +65,15 @@ def median_batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch
     """
     if batch < 1 or len(queries) < (warmup + 1) * batch:
         raise ValueError(f"{len(queries)} queries do not make {warmup + 1} batches of {batch}")
-    times = []
+    total, timed = 0.0, 0
     with torch_threads(threads):
         for k, first in enumerate(range(0, len(queries) - batch + 1, batch)):
             start = time.perf_counter()
             predict(queries[first:first + batch])
             if k >= warmup:
-                times.append((time.perf_counter() - start) * 1000.0 / batch)
-    return float(torch.tensor(times).median())
+                total += time.perf_counter() - start
+                timed += batch
+    return total * 1000.0 / timed
 
 
 @torch.no_grad()

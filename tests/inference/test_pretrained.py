@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 import matl.inference.api
 from matl import Recognizer
@@ -74,3 +75,41 @@ def test_predict_without_ckpt_and_without_a_shipped_model_is_one_line(tmp_path: 
     assert not (tmp_path / "p.jsonl").exists()
     with pytest.raises(MatlError, match="no pretrained model ships"):
         Recognizer.pretrained()
+
+
+FAST = matl.inference.api.PRETRAINED_FAST
+needs_fast = pytest.mark.skipif(not FAST.is_file(), reason=f"{FAST} is not in this checkout")
+
+
+@needs_fast
+def test_the_fast_shipped_model_is_its_experiment_and_loads_by_name(tmp_path: Path) -> None:
+    ckpt = torch.load(FAST, map_location="cpu", weights_only=True)
+    assert FAST.stat().st_size < 2 * 2**20 and "optimizer_states" not in ckpt
+    # experiment=pretrained_fast: model=matl_camera_fast (regressor at stride 4 on raw pixels), no alignment stage
+    recipe = compose_config("train", ["experiment=pretrained_fast"], tmp_path)
+    model = ckpt["matl_config"]["model"]
+    assert recipe.publish == "shipped_fast"
+    for part in ("stn", "feature_net"):
+        assert model[part] == OmegaConf.to_container(recipe.model[part], resolve=True), part
+    assert model["stn"]["regressor"]["strides"] == [4, 1] and model["feature_net"]["input_norm"] == "channel"
+    assert not any(k.startswith("align.") for k in ckpt["state_dict"])
+    rec = Recognizer.pretrained("fast", refine=True)
+    assert rec.image_size == 100 and rec.model.align is None and rec.refiner is not None
+    with pytest.raises(MatlError, match="no shipped model is called 'tiny'"):
+        Recognizer.pretrained("tiny")
+
+
+@needs_fast
+def test_ckpt_pretrained_fast_names_the_fast_model_on_the_command_line(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    out = tmp_path / "fast.jsonl"
+    cfg = compose_config("predict", [f"gallery={gallery}", f"images={queries}", f"out={out}", "cache=false",
+                                     "ckpt=pretrained_fast"], tmp_path / "run")
+    predict(cfg)
+    assert cfg.ckpt == str(FAST) and len(out.read_text().splitlines()) == len(list(queries.iterdir()))
+
+
+def test_a_missing_shipped_model_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(matl.inference.api, "PRETRAINED_FAST", tmp_path / "missing.ckpt")
+    with pytest.raises(MatlError, match=r"no pretrained model ships with this version of matl .*missing\.ckpt"):
+        Recognizer.pretrained("fast")
