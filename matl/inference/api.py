@@ -349,7 +349,10 @@ class Recognizer:
     @classmethod
     def pretrained(cls, name: str = "default", **options: Any) -> Recognizer:
         """A model shipped inside the package (loaded offline): ``default`` (with its alignment stage: the best
-        pose without refinement) or ``fast`` (a cheaper s(), for ``refine=True``; docs/speed.md)."""
+        pose without refinement) or ``fast`` (a cheaper s() whose pose the refinement sets: ``refine`` defaults
+        to True for it; docs/speed.md)."""
+        if name == "fast":
+            options.setdefault("refine", True)
         return cls.from_checkpoint(shipped_checkpoint(name), **options)
 
     # ------------------------------------------------------------------------------------ gallery

@@ -93,8 +93,9 @@ def test_the_fast_shipped_model_is_its_experiment_and_loads_by_name(tmp_path: Pa
         assert model[part] == OmegaConf.to_container(recipe.model[part], resolve=True), part
     assert model["stn"]["regressor"]["strides"] == [4, 1] and model["feature_net"]["input_norm"] == "channel"
     assert not any(k.startswith("align.") for k in ckpt["state_dict"])
-    rec = Recognizer.pretrained("fast", refine=True)
+    rec = Recognizer.pretrained("fast")  # refined by default: its pose is the refinement's
     assert rec.image_size == 100 and rec.model.align is None and rec.refiner is not None
+    assert Recognizer.pretrained("fast", refine=False).refiner is None
     with pytest.raises(MatlError, match="no shipped model is called 'tiny'"):
         Recognizer.pretrained("tiny")
 
