@@ -99,7 +99,11 @@ def test_recognizer_int8_same_nearest_anchor_and_fallbacks() -> None:
     distance = torch.cdist(rec.embed_queries(queries)[0], rec.gallery_features)
     float_distance = torch.cdist(float_rec.embed_queries(queries)[0], float_rec.gallery_features)
     assert (distance - float_distance).abs().max() < DISTANCE_ATOL
-    assert torch.allclose(got.query_H_canon, expected.query_H_canon, atol=H_PIXEL_ATOL)
+    # the pose: s()'s for every query, and the canonical pose where both paths chose the same anchor (another
+    # anchor, of another plane where the margins are this small, has another canonical frame)
+    assert torch.allclose(got.query_H_anchor, expected.query_H_anchor, atol=H_PIXEL_ATOL)
+    same = got.gallery_index == expected.gallery_index
+    assert torch.allclose(got.query_H_canon[same], expected.query_H_canon[same], atol=H_PIXEL_ATOL)
     assert torch.equal(rec(queries[:1]).gallery_index, got.gallery_index[:1])  # batch of one: the same answer
     # the quantised copy is stale once the float weights change: the float path answers again
     with torch.no_grad():
