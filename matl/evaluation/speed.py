@@ -639,13 +639,11 @@ def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
     ckpt_path = cfg.get("ckpt")
     if not ckpt_path:
         return None, "untrained: the default config's model, randomly initialised (speed does not depend on weights)"
+    from matl.inference.api import SHIPPED, resolve_checkpoint_keyword
     from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 
-    pretrained = str(ckpt_path) in ("pretrained", "pretrained_fast")
-    if pretrained:
-        from matl.inference.api import resolve_checkpoint_keyword
-
-        ckpt_path = resolve_checkpoint_keyword(str(ckpt_path))
+    pretrained = str(ckpt_path) in SHIPPED  # ckpt=pretrained / pretrained_fast
+    ckpt_path = resolve_checkpoint_keyword(str(ckpt_path))
     ckpt = load_checkpoint(ckpt_path)
     size, num_anchors = checkpoint_info(ckpt, ckpt_path)
     config = ckpt.get("matl_config")

@@ -422,15 +422,14 @@ class FastRefiner:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose and its loss."""
         loss, r, gain, robust = self._evaluate(query, anchor, H, scale)
         lam = self.damping
-        A = b = diagonal = None
+        A = b = None
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
                 break
             if A is None:  # the normal equations at the current (best) pose
                 A, b = self._normal_equations(r, anchor, gain, scale, robust)
-                diagonal = A.diagonal().copy()
             damped = A.copy()  # A + lam * diag(A) + 1e-9 I, summed in that order
-            damped[_DIAGONAL] += lam * diagonal
+            damped[_DIAGONAL] += lam * A.diagonal()
             damped[_DIAGONAL] += 1e-9
             ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_CHOLESKY)
             if not ok:

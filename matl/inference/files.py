@@ -232,7 +232,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
                             "missing); train one (python -m matl.train) and pass its checkpoints/best.ckpt")
         with open_dict(cfg):
             cfg.ckpt = str(PRETRAINED)
-    elif cfg.ckpt in ("pretrained", "pretrained_fast"):  # a shipped model by name
+    else:  # ckpt=pretrained / pretrained_fast: a shipped model by name
         from omegaconf import open_dict
 
         from matl.inference.api import resolve_checkpoint_keyword
