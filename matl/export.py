@@ -15,7 +15,7 @@ Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
 
 Formats: ``torchscript`` (default; ``.pt``, ``torch.jit.load`` in Python or libtorch in C++, no matl or
 kornia needed), ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``) or
-``onnx`` (``.onnx``, opset 17, checked in onnxruntime's CPUExecutionProvider; ``pip install -e ".[onnx]"``).
+``onnx`` (``.onnx``, opset 17, checked in onnxruntime's CPUExecutionProvider; both dependencies of matl).
 Every format has a dynamic batch axis. The query network re-expresses the STN's forward pass with
 plain torch ops (``grid_sample`` on a precomputed grid, the degeneracy guard as ``torch.where``;
 :class:`matl.inference.recognizer.QueryGraph`) so that tracing records no Python branch; for ONNX, which

@@ -38,12 +38,15 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
     assert timing["queries"] == 3 and timing["weights"].startswith("untrained")
     assert math.isclose(saved["speedup_vs_sift"], q["sift_ransac"] / q["matl"], rel_tol=1e-9)
     assert math.isclose(saved["refine_added_ms"], q["matl_refine"] - q["matl"], rel_tol=1e-9)
-    # each method timed at every thread count up to the run's, reported at its fastest; MATL by its compiled graph
+    # each method timed at every thread count up to the run's, reported at its fastest
     by, sift_by = timing["matl_ms_by_threads"], timing["sift_ms_by_threads"]
     assert set(by) == set(sift_by) == {str(n) for n in range(1, torch.get_num_threads() + 1)}
     assert q["matl"] == by[str(timing["matl_threads"])] == min(by.values())
     assert q["sift_ransac"] == sift_by[str(timing["sift_threads"])] == min(sift_by.values())
-    assert timing["matl_path"].startswith("compiled")
+    # runtime=onnxruntime (the default): MATL's query networks in onnxruntime, torch's compiled graph timed beside
+    assert timing["matl_path"].startswith("onnxruntime") and timing["runtime"] == "onnxruntime"
+    assert timing["runtime_fallback"] is None and q["matl_torch"] > 0 and q["matl_torch_refine"] > 0
+    assert set(timing["matl_torch_ms_by_threads"]) == set(by)
     # where a refined query's time goes (refiner=fast, the default): each part > 0, the refinement per level
     parts = timing["breakdown"]
     assert parts["refiner"] == "FastRefiner" and parts["threads"] == timing["matl_threads"]

@@ -24,6 +24,7 @@ from matl.geometry import corner_error_px, frobenius_pose_error
 from matl.inference.options import configure_recognizer
 from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
 from matl.inference.recognizer import Prediction
+from matl.inference.runtime import apply_runtime_option, runtime_option
 from matl.metrics import METRIC_NAMES, pose_metrics
 from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
 from matl.utils.config import validate_config
@@ -176,6 +177,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     """Evaluate a run's checkpoint or a baseline (see the module docstring); returns ``eval.json``'s content."""
     validate_config(cfg)  # eval's own options (device, timing_queries, ...), before anything is loaded
     quantize_option(cfg)  # quantize=none|int8, checked before anything is loaded
+    runtime_option(cfg)  # runtime=torch|onnxruntime
     config, run_dir, data_name = effective_config(cfg)
     validate_config(config)
     out_dir = Path(cfg.paths.output_dir)
@@ -210,6 +212,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
     quantize = {"quantize": quantize_option(cfg), "quantize_fallback": None}
     if quantize["quantize"] != "none":  # quantize=int8, calibrated on training positives (matl/inference/quantize.py)
         quantize = apply_quantize_option(predict, cfg, lambda: datamodule_calibration(datamodule))
+    runtime = apply_runtime_option(predict, cfg)  # runtime=onnxruntime: MATL's query networks in onnxruntime
     predict, inference = configure_recognizer(predict, cfg)  # search=exact|faiss, refine=true (docs/speed.md)
 
     metrics, rows, degenerate = run_queries(predict, datamodule, device, show_progress)
@@ -232,6 +235,7 @@ def evaluate(cfg: DictConfig, show_progress: bool = True) -> dict[str, Any]:
         "degenerate_queries": degenerate,
         **inference,
         **quantize,
+        **runtime,
         **info,
     })
     write_json(out_dir / "eval.json", results)

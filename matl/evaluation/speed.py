@@ -164,6 +164,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     from matl.baselines.recognizer import BaselineRecognizer, build_baseline
     from matl.inference.options import search_name
     from matl.inference.refine import RefinedRecognizer
+    from matl.inference.runtime import apply_runtime_option
     from matl.inference.search import ExactSearch
 
     warmup, count = int(options.query_warmup), int(options.queries)
@@ -174,6 +175,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     gallery = datamodule.gallery
     model.to(device).eval()
     recognizer = model.build_recognizer(gallery)
+    runtime = apply_runtime_option(recognizer, cfg)  # runtime=onnxruntime: the query networks in onnxruntime
     query_ms: dict[str, float | None] = {}
     notes: dict[str, str] = {}
 
@@ -202,6 +204,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
             query_ms["matl_int8_refine"] = median_query_ms(_synced(refined_int8, device), queries, warmup,
                                                            int8["matl_int8_threads"])
     int8.pop("recognizer", None)
+    torch_ms = measure_torch_runtime(recognizer, refined, queries, warmup, counts, device)  # runtime=onnxruntime
+    query_ms.update(torch_ms.pop("query_ms"))
     if options.faiss and hasattr(recognizer, "use_search"):
         faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
         try:
@@ -250,6 +254,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "matl_align": "the alignment stage runs in query_ms.matl (after the search)" if getattr(
             recognizer, "align", None) is not None else None,
         "breakdown": breakdown,
+        **runtime,
+        **torch_ms,
         **int8,
         **onnx,
         **extra,
@@ -257,6 +263,26 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     if notes:
         timing["notes"] = notes
     return {"query_ms": query_ms, "query_timing": timing, **batched}
+
+
+def measure_torch_runtime(recognizer: Any, refined: Any, queries: torch.Tensor, warmup: int, counts: list[int],
+                          device: torch.device) -> dict[str, Any]:
+    """With ``runtime=onnxruntime`` in place: ``query_ms.matl_torch`` (and ``matl_torch_refine``), the same
+    recognizer and queries with the query networks in torch (the compiled graph), each at every thread count and
+    kept at its fastest; empty otherwise."""
+    path = getattr(recognizer, "onnx", None)
+    if path is None:
+        return {"query_ms": {}}
+    recognizer.onnx = None  # restored below
+    try:
+        by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+        threads = int(min(by_threads, key=lambda n: by_threads[n]))
+        query_ms = {"matl_torch": by_threads[str(threads)]}
+        if refined is not None:
+            query_ms["matl_torch_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)
+    finally:
+        recognizer.onnx = path
+    return {"query_ms": query_ms, "matl_torch_ms_by_threads": by_threads, "matl_torch_threads": threads}
 
 
 def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Callable[[torch.Tensor], Any]],
@@ -296,7 +322,8 @@ def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.
     """Where a refined MATL query's milliseconds go: the median over the same single queries of each part,
     timed alone at MATL's thread count (so the parts need not add up exactly to ``query_ms.matl_refine``).
 
-    ``networks_ms``: ``c(s(q))`` by the recognizer's own path (compiled graph when it applies);
+    ``networks_ms``: ``c(s(q))`` by the recognizer's own path (onnxruntime with ``runtime=onnxruntime``, else the
+    compiled graph when it applies);
     ``stn_ms`` / ``features_ms``: ``s()`` and ``c()`` alone, eager ``infer``; ``search_ms``: the gallery search
     of the query's embedding; ``align_ms``: the alignment stage against the searched anchor (models with
     ``model.align``; in ``query_ms.matl``, and in ``matl_refine`` unless the refiner skips it:
@@ -531,7 +558,9 @@ def opencv_threads(threads: int) -> Iterator[None]:
 
 
 def _query_path(recognizer: Any, query: torch.Tensor) -> str:
-    """Which code answered a single query: the compiled TorchScript graph or the eager networks."""
+    """Which code answered a single query: onnxruntime, the compiled TorchScript graph or the eager networks."""
+    if getattr(recognizer, "onnx", None) is not None:
+        return "onnxruntime (s()'s regressor and c(); s()'s warps in OpenCV: runtime=onnxruntime)"
     compiled = recognizer._compiled_path(query) if hasattr(recognizer, "_compiled_path") else None
     if compiled is not None and compiled.failure is None and compiled._graph is not None:
         return "compiled (TorchScript, frozen, optimize_for_inference)"
@@ -662,6 +691,9 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     options = bench_options(cfg)  # before any heavy import
     if str(cfg.get("quantize") or "none") not in ("none", "int8"):
         raise MatlError(f"quantize={cfg.get('quantize')} is invalid: use none or int8")
+    from matl.inference.runtime import runtime_option
+
+    runtime_option(cfg)  # runtime=torch|onnxruntime
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     device = torch.device(str(cfg.device) if cfg.device != "auto" else "cuda" if torch.cuda.is_available() else "cpu")
@@ -707,7 +739,8 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     results["render_images_per_s"], results["render"] = measure_render(cfg, options)
     results["config"] = {"bench": OmegaConf.to_container(options, resolve=True), "data": _data_name(cfg),
                          "image_size": int(cfg.data.image_size), "N": int(cfg.N), "seed": int(cfg.seed),
-                         "ckpt": cfg.get("ckpt"), "quantize": cfg.get("quantize", "none")}
+                         "ckpt": cfg.get("ckpt"), "quantize": cfg.get("quantize", "none"),
+                         "runtime": cfg.get("runtime", "torch")}
     write_json(out_dir / "bench.json", results)
     print_summary(results, console or Console())
     return results
@@ -743,11 +776,16 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
                   f"batch {train['batch_size']}, {train['image_size']} px, N={train['N']}")
     table.add_row("data_time_fraction", _fmt(results["data_time_fraction"], 3), "share of a step in materialize")
     table.add_row("query_ms.matl", _fmt(q.get("matl")),
-                  f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}; {t['matl_threads']} thread(s)")
+                  f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}; {t['matl_threads']} thread(s); "
+                  f"runtime={t.get('runtime')}" + (f" (fallback: {t['runtime_fallback']})"
+                                                   if t.get("runtime_fallback") else ""))
     if "matl_refine" in q:
         table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")), f"+{_fmt(results.get('refine_added_ms'))} ms")
         table.add_row("speedup_vs_sift_refine", _fmt(results.get("speedup_vs_sift_refine"), 1),
                       "sift_ransac / matl_refine")
+    for name in ("matl_torch", "matl_torch_refine"):
+        if name in q:
+            table.add_row(f"query_ms.{name}", _fmt(q.get(name)), "the same with runtime=torch (compiled graph)")
     if "matl_faiss" in q:
         table.add_row("query_ms.matl_faiss", _fmt(q.get("matl_faiss")), t.get("notes", {}).get("matl_faiss", ""))
     table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),

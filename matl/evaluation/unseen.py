@@ -45,6 +45,7 @@ from matl.evaluation.conditions import (
 from matl.evaluation.open_set import open_set_summary, plot_open_set
 from matl.evaluation.score import METRICS, score_files, write_rows
 from matl.geometry import HomographySampler
+from matl.inference.runtime import runtime_option
 from matl.models.checkpoint import checkpoint_info, load_checkpoint
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
@@ -394,12 +395,14 @@ def method_overrides(method: str) -> list[str]:
     return [o.replace(prefix, "baseline.", 1) for o in overrides if o.lstrip("+~").startswith(prefix)]
 
 
-def predict_args(method: str, common: list[str], foreground: str = "grabcut") -> list[str]:
+def predict_args(method: str, common: list[str], foreground: str = "grabcut", runtime: str = "onnxruntime"
+                 ) -> list[str]:
     """predict's overrides for one method on the files of ``common`` (ckpt, gallery, images, fills, ...);
-    ``foreground`` is the choice of the ``foreground`` group for matl and matl_refine."""
+    ``foreground`` is the choice of the ``foreground`` group and ``runtime`` the query networks' runtime for matl
+    and matl_refine."""
     if method in ("matl", "matl_refine"):
         return [*common, _arg("refine", method == "matl_refine"), _arg("foreground", foreground),
-                *method_overrides(method)]
+                _arg("runtime", runtime), *method_overrides(method)]
     return [*[a for a in common if not a.startswith("threshold=")], _arg("baseline", method), _arg("threshold", "null"),
             *method_overrides(method)]
 
@@ -426,7 +429,7 @@ def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, 
                                  "threshold": threshold, "open_set_quantile": cfg.get("open_set_quantile", 0.94),
                                  **{key: cfg.get(key, default) for key, default in OPEN_SET_KEYS.items()},
                                  "gallery_fill": gallery_fill, "query_fill": query_fill, "batch_size": 1,
-                                 "quantize": "none"})
+                                 "quantize": "none", "runtime": runtime_option(cfg)})
         node.refiner = cfg.refiner
         node.foreground = cfg.get("foreground")
         return recognizer_from_config(node)
@@ -486,6 +489,7 @@ def _ranges(cfg: DictConfig, keys: list[str]) -> None:
 def _check(cfg: DictConfig) -> tuple[list[str], list[str]]:
     """Validate a composed ``conf/unseen.yaml``; returns the conditions and the methods."""
     validate_config(cfg)
+    runtime_option(cfg)  # runtime=torch|onnxruntime
     if cfg.get("ckpt") in (None, ""):
         raise MatlError("ckpt=... is required: python -m matl.unseen ckpt=<checkpoint> [condition=all] "
                         "[data=heldout] [out=<dir>]")
@@ -589,7 +593,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     rows_of: dict[str, list[dict[str, Any]]] = {}
     for method in methods:
         pred_path = out / ("predictions.jsonl" if method == primary else f"predictions_{method}.jsonl")
-        args = [*predict_args(method, common, foreground_choice(cfg)), _arg("out", pred_path)]
+        args = [*predict_args(method, common, foreground_choice(cfg), runtime_option(cfg)), _arg("out", pred_path)]
         log.info("unseen: %s: predicting %d queries with %s", condition, len(truth), method)
         run_predict([*args, _arg("hydra.run.dir", out / f"predict_{method}")], out, f"predict_{method}.log")
         summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)

@@ -68,6 +68,7 @@ from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.recognizer import Prediction, embed
 from matl.inference.recognizer import Recognizer as GalleryRecognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
+from matl.inference.runtime import RUNTIMES, runtime_path
 from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
 from matl.inference.verify import CandidatePose, Verification, verify_candidates
 from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
@@ -266,6 +267,9 @@ class Recognizer:
             per-anchor data is computed once each time the gallery changes; or a configured
             ``FastRefiner`` or :class:`~matl.inference.refine.PhotometricRefiner`).
         quantize: ``none`` or ``int8`` (int8 convolutions for the query networks, float fallback).
+        runtime: ``onnxruntime`` (default: ``s()``'s regressor and ``c()`` in onnxruntime, ``s()``'s warps in
+            OpenCV, for CPU queries; :mod:`matl.inference.runtime`) or ``torch``. Falls back to torch, saying
+            why in ``options()["runtime_fallback"]``, where it does not apply (a GPU, another model).
         search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
             query gets the nearest product).
@@ -293,7 +297,7 @@ class Recognizer:
 
     def __init__(self, model: nn.Module, image_size: int, num_anchors: int, model_id: str, *,
                  device: str = "cpu", refine: bool | PhotometricRefiner | FastRefiner | None = False,
-                 quantize: str = "none",
+                 quantize: str = "none", runtime: str = "onnxruntime",
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
                  open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
@@ -302,6 +306,8 @@ class Recognizer:
                  foreground: str | GrabCutForeground | None = "grabcut") -> None:
         if quantize not in ("none", "int8"):
             raise MatlError(f"quantize={quantize!r} is invalid: use none or int8")
+        if runtime not in RUNTIMES:
+            raise MatlError(f"runtime={runtime!r} is invalid: use {' or '.join(RUNTIMES)}")
         if not (threshold is None or threshold == "auto" or isinstance(threshold, (int, float))):
             raise MatlError(f"threshold={threshold!r} is invalid: use auto, a distance or None (closed set)")
         if device == "auto":
@@ -311,6 +317,7 @@ class Recognizer:
         self.device = torch.device(device)
         self.refiner = _refiner(refine)
         self.quantize = quantize
+        self.runtime = runtime
         self.search = _search_factory(search)
         self.threshold_option = threshold
         if open_set_statistic not in OPEN_SET_STATISTICS:
@@ -334,6 +341,8 @@ class Recognizer:
         self.batch_size = int(batch_size)
         self.foreground = foreground_option(foreground)
         self.quantize_fallback: str | None = None
+        self.runtime_fallback: str | None = None
+        self._runtime_path: Any = None  # runtime=onnxruntime's query path, built at the first query
         self._planes: list[_Plane] = []
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
@@ -469,6 +478,10 @@ class Recognizer:
                                        align=getattr(model, "align", None))
         if self.quantize == "int8":
             self.quantize_fallback = quantize_recognizer(recognizer, calibration_images(gallery.images))
+        if self.runtime == "onnxruntime":  # the path depends on the networks only: built once, kept across galleries
+            if self._runtime_path is None and self.runtime_fallback is None:
+                self._runtime_path, self.runtime_fallback = runtime_path(recognizer)
+            recognizer.onnx = self._runtime_path
         predictor = RefinedRecognizer(recognizer, self.refiner) if self.refiner is not None else recognizer
         self._built = (predictor, gallery)
         return self._built
@@ -636,7 +649,7 @@ class Recognizer:
         return self._planes[index]
 
     def options(self) -> dict[str, Any]:
-        """What the queries run with (for result files): search, refinement, quantisation."""
+        """What the queries run with (for result files): search, refinement, quantisation, runtime."""
         refiner = None
         if self.refiner is not None:
             refiner = {k: v for k, v in vars(self.refiner).items() if not k.startswith("_")}
@@ -644,7 +657,9 @@ class Recognizer:
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
                 "refine": self.refiner is not None, "refiner": refiner, "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
-                "quantize_fallback": self.quantize_fallback}
+                "quantize_fallback": self.quantize_fallback,
+                "runtime": "torch" if self.runtime_fallback else self.runtime,
+                "runtime_fallback": self.runtime_fallback}
 
     def predict_details(self, arrays: list[np.ndarray]) -> tuple[list[Match], Prediction, torch.Tensor]:
         """:meth:`predict` for float RGB ``(H, W, 3)`` or RGBA ``(H, W, 4)`` arrays in [0, 1] (alpha = mask),

@@ -30,7 +30,7 @@ GALLERY_OUTPUTS = ("embedding",)
 QUERY_OUTPUTS = ("embedding", "query_H_anchor", "degenerate", "warped")
 #: 16 is the first opset with GridSample (the STN's warp); 17 is read by every onnxruntime >= 1.12
 ONNX_OPSET = 17
-ONNX_INSTALL = 'pip install -e ".[onnx]"'
+ONNX_INSTALL = 'pip install "onnx>=1.15" "onnxruntime>=1.17" (dependencies of matl)'
 #: squarings of the power iteration in :func:`svdvals_3x3`: the largest eigenvalue to < 1 / (e * 2**24) relative
 _SQUARINGS = 24
 
@@ -132,16 +132,17 @@ class OnnxNetwork:
     ``output_names`` (the query network), or the one tensor of a single-output network (the gallery's).
 
     Args:
-        path: the ``.onnx`` file.
+        path: the ``.onnx`` file, or its bytes.
         threads: onnxruntime's intra-op threads (None: its default, all cores).
     """
 
-    def __init__(self, path: str | Path, threads: int | None = None) -> None:
+    def __init__(self, path: str | Path | bytes, threads: int | None = None) -> None:
         ort = require_onnxruntime()
         options = ort.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
-        self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        model = path if isinstance(path, bytes) else str(path)
+        self.session = ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
         self.input_name = self.session.get_inputs()[0].name
         self.output_names = tuple(o.name for o in self.session.get_outputs())
 
@@ -161,14 +162,26 @@ def _export_onnx(module: nn.Module, example: torch.Tensor, path: Path, outputs: 
     the one argument and ``dynamic_shapes`` for ``dynamic_axes``.
     """
     require_onnxruntime()
+    path.write_bytes(onnx_bytes(module, example, outputs))
+    return OnnxNetwork(path)
+
+
+def onnx_bytes(module: nn.Module, example: torch.Tensor, outputs: tuple[str, ...]) -> bytes:
+    """``module`` as a serialised ONNX model (input ``images``, ``outputs`` named, a dynamic batch axis).
+
+    The TorchScript-based exporter (see :func:`_export_onnx`), ``torch.linalg.svdvals`` recorded as
+    :func:`svdvals_3x3`. Needs the ``onnx`` package."""
+    import io
+
     axes = {name: {0: "batch"} for name in ("images", *outputs)}
+    buffer = io.BytesIO()
     with warnings.catch_warnings(), _OnnxTraceable():
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         warnings.filterwarnings("ignore", message=".*Converting a tensor to a Python.*")
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
-        torch.onnx.export(module, (example,), str(path), dynamo=False, input_names=["images"],
+        torch.onnx.export(module, (example,), buffer, dynamo=False, input_names=["images"],
                           output_names=list(outputs), dynamic_axes=axes, opset_version=ONNX_OPSET)
-    return OnnxNetwork(path)
+    return buffer.getvalue()
 
 
 # ---------------------------------------------------------------------------------------- export

@@ -152,12 +152,11 @@ class AnchorTemplates:
         return held + sum(mask.nbytes for mask in self.outside or ())
 
 
-_DIAGONAL = np.diag_indices(8)
 
 
 def _inverse_update(p: np.ndarray) -> np.ndarray:
     """``inv(I + D(p))`` ``(3, 3)`` of ``p`` ``(8,)`` (the adjugate; the scale is divided out later)."""
-    a, b, c, d, e, f, g, h = p
+    a, b, c, d, e, f, g, h = p.tolist()  # Python floats: the same float64 arithmetic without NumPy scalars
     a, e = a + 1.0, e + 1.0
     return np.array([[e - f * h, c * h - b, b * f - c * e],
                      [f * g - d, a - c * g, c * d - a * f],
@@ -429,8 +428,9 @@ class FastRefiner:
             if A is None:  # the normal equations at the current (best) pose
                 A, b = self._normal_equations(r, anchor, gain, scale, robust)
             damped = A.copy()  # A + lam * diag(A) + 1e-9 I, summed in that order
-            damped[_DIAGONAL] += lam * A.diagonal()
-            damped[_DIAGONAL] += 1e-9
+            diagonal = damped.reshape(-1)[::9]  # a view of the diagonal (a strided slice: no index arrays)
+            diagonal += lam * A.diagonal()
+            diagonal += 1e-9
             ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_SVD)
@@ -440,8 +440,8 @@ class FastRefiner:
             candidate = H @ _inverse_update(dp)
             candidate = candidate / candidate[2, 2]
             cand_loss, cand_r, cand_gain, cand_robust = self._evaluate(query, anchor, candidate, scale)
-            motion = dp @ anchor.corner_J  # px of the level
-            step = math.sqrt(float((motion[0::2] ** 2 + motion[1::2] ** 2).max()))
+            motion = (dp @ anchor.corner_J).tolist()  # px of the level, (x0, y0, x1, y1, ...)
+            step = math.sqrt(max(x * x + y * y for x, y in zip(motion[0::2], motion[1::2], strict=True)))
             if cand_loss < loss:
                 H, loss, r, gain, robust = candidate, cand_loss, cand_r, cand_gain, cand_robust
                 lam = max(lam * 0.1, 1e-9)

@@ -25,6 +25,7 @@ from matl.inference.api import Match, Recognizer
 from matl.inference.gallery import report_skipped
 from matl.inference.quantize import quantize_option
 from matl.inference.recognizer import Prediction
+from matl.inference.runtime import runtime_option
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
 from matl.utils.instantiate import instantiate_node
@@ -187,14 +188,16 @@ def _threshold(cfg: DictConfig) -> float | str | None:
 
 
 def recognizer_from_config(cfg: DictConfig) -> Recognizer:
-    """The :class:`Recognizer` a predict config asks for (checkpoint, device, search, refine, quantize, open set)."""
+    """The :class:`Recognizer` a predict config asks for (checkpoint, device, search, refine, quantize, runtime,
+    open set)."""
     refine = cfg.get("refine", False)
     if refine not in (True, False):
         raise MatlError(f"refine={refine} is invalid: use true or false")
     refiner = instantiate_node(cfg.refiner, "refiner") if refine else None
     search = instantiate_node(cfg.search, "search") if cfg.get("search") is not None else "exact"
     recognizer = Recognizer.from_checkpoint(
-        cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg), search=search,
+        cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg),
+        runtime=runtime_option(cfg), search=search,
         threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
         open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
         verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
@@ -217,6 +220,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     """
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
     quantize_option(cfg)  # quantize=none|int8
+    runtime_option(cfg)  # runtime=torch|onnxruntime
     _threshold(cfg)
     for key in ("gallery", "images", "out"):
         if cfg.get(key) in (None, ""):

@@ -252,6 +252,9 @@ class Recognizer(nn.Module):
         #: optional reduced-precision path (:func:`matl.inference.quantize.quantize_recognizer`), used for every
         #: CPU float32 batch while the weights it was built from are unchanged; None: float32 only
         self.quantized: Any = None
+        #: optional onnxruntime path (:mod:`matl.inference.runtime`, ``runtime=onnxruntime``), used for CPU float32
+        #: batches (after the int8 path, when both are set); None: torch
+        self.onnx: Any = None
         self._pose_table: tuple[torch.Tensor, torch.Tensor] | None = None  # (source, float64 copy)
         if gallery_features is not None and len(gallery_features) != len(gallery):
             raise ValueError(f"{len(gallery_features)} gallery features for {len(gallery)} gallery images")
@@ -302,6 +305,11 @@ class Recognizer(nn.Module):
         if (quantized is not None and queries.device.type == "cpu" and queries.dtype == torch.float32
                 and quantized.matches()):
             return quantized(queries)
+        onnx = self.onnx
+        if onnx is not None and queries.device.type == "cpu" and queries.dtype == torch.float32:
+            result = onnx(queries)
+            if result is not None:
+                return result
         compiled = self._compiled_path(queries)
         result = compiled(queries) if compiled is not None else None
         if result is not None:
