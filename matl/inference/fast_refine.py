@@ -225,7 +225,7 @@ class FastRefiner:
 
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
                  loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
-                 min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.01,
+                 min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.25,
                  threads: int | None = 1, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
                  auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined") -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(

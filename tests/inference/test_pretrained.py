@@ -85,13 +85,15 @@ needs_fast = pytest.mark.skipif(not FAST.is_file(), reason=f"{FAST} is not in th
 def test_the_fast_shipped_model_is_its_experiment_and_loads_by_name(tmp_path: Path) -> None:
     ckpt = torch.load(FAST, map_location="cpu", weights_only=True)
     assert FAST.stat().st_size < 2 * 2**20 and "optimizer_states" not in ckpt
-    # experiment=pretrained_fast: model=matl_camera_fast (regressor at stride 4 on raw pixels), no alignment stage
+    # experiment=pretrained_fast: model=matl_camera_fast (regressor at stride 4 on raw pixels, c()'s first conv at 16
+    # channels), no alignment stage
     recipe = compose_config("train", ["experiment=pretrained_fast"], tmp_path)
     model = ckpt["matl_config"]["model"]
     assert recipe.publish == "shipped_fast"
     for part in ("stn", "feature_net"):
         assert model[part] == OmegaConf.to_container(recipe.model[part], resolve=True), part
     assert model["stn"]["regressor"]["strides"] == [4, 1] and model["feature_net"]["input_norm"] == "channel"
+    assert model["feature_net"]["channels"] == [16, 128]
     assert not any(k.startswith("align.") for k in ckpt["state_dict"])
     rec = Recognizer.pretrained("fast")  # refined by default: its pose is the refinement's
     assert rec.image_size == 100 and rec.model.align is None and rec.refiner is not None
