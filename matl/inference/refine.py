@@ -359,9 +359,11 @@ class RefinedRecognizer:
         else:
             result = self.refiner(queries.to(g.images.device), g.images[safe], start)
         self.last = result
-        H = torch.where(found[:, None, None], result.query_H_anchor, start)
+        every = bool(found.all())  # the usual case: no query is left without an anchor
+        H = result.query_H_anchor if every else torch.where(found[:, None, None], result.query_H_anchor, start)
         pose = compose_query_H_canon(H, g.anchor_H_canon[safe].double())
-        old = pred.query_H_canon.double().to(pose.device) if pred.query_H_canon is not None else pose
-        pose = torch.where(found[:, None, None], pose, old)
+        if not every:
+            old = pred.query_H_canon.double().to(pose.device) if pred.query_H_canon is not None else pose
+            pose = torch.where(found[:, None, None], pose, old)
         device = pred.query_H_anchor.device
         return dataclasses.replace(pred, query_H_anchor=H.to(device), query_H_canon=pose.to(device))

@@ -164,3 +164,18 @@ def test_guard_replaces_degenerate_by_identity_and_keeps_the_gradient_of_the_res
     # a given identity (a traced graph's constant) is the one used
     eye = torch.eye(3) * 1.0
     assert torch.equal(guard_homographies(H.detach(), 1e4, eye)[0][0], eye)
+
+
+def test_compose_query_H_canon_small_cpu_batches_equal_the_torch_products() -> None:
+    """A few float64 CPU queries take a NumPy shortcut: the same products and scaling as the torch path (any
+    batch, gradients), a matrix with H[2, 2] ~ 0 left unscaled by both."""
+    g = torch.Generator().manual_seed(3)
+    a = torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    b = torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    b[2] = torch.eye(3, dtype=torch.float64)
+    a[2, 2, :] = torch.tensor([0.1, 0.2, 0.0], dtype=torch.float64)  # (a @ b)[2, 2] = 0: not scaled
+    fast = compose_query_H_canon(a, b)
+    reference = compose_query_H_canon(a.requires_grad_(True), b).detach()  # with a gradient: the torch path
+    assert torch.allclose(fast, reference, rtol=1e-12, atol=1e-12) and fast.dtype == torch.float64
+    assert torch.allclose(fast[2], a[2].detach() @ b[2])
+    assert torch.allclose(fast[[0, 1, 3, 4], 2, 2], torch.ones(4, dtype=torch.float64))
