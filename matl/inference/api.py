@@ -71,7 +71,7 @@ from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import RUNTIMES, runtime_path
 from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
 from matl.inference.verify import CandidatePose, Verification, verify_candidates
-from matl.models.checkpoint import build_model, checkpoint_info, file_sha256, load_checkpoint
+from matl.models.checkpoint import load_embedding_model
 from matl.utils.errors import MatlError
 
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model", "shipped_checkpoint"]
@@ -155,36 +155,6 @@ class _Plane:
     path: str | None
     features: torch.Tensor          # (N, D) float32
     calibration: torch.Tensor | None = None  # (W, D) features of warped copies (open-set calibration)
-
-
-def load_embedding_model(ckpt_path: str | Path, image_size: int | None = None,
-                         device: str = "cpu") -> tuple[nn.Module, int, int, str]:
-    """The checkpoint's model (eval mode, on ``device``), its image size, N and file sha256.
-
-    The size is always the checkpoint's; ``image_size`` only asserts it.
-
-    Raises:
-        MatlError: not a matl checkpoint, inconsistent, or a model that cannot enrol new products.
-    """
-    ckpt = load_checkpoint(ckpt_path)
-    size, num_anchors = checkpoint_info(ckpt, ckpt_path)
-    if image_size is not None and int(image_size) != size:
-        raise MatlError(f"checkpoint {ckpt_path} was trained at {size} px, not image_size={image_size}: the model "
-                        "size always comes from the checkpoint (drop image_size=)")
-    config = ckpt.get("matl_config")
-    if not isinstance(config, dict) or "model" not in config:
-        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train")
-    data_size = config.get("data", {}).get("image_size")
-    if data_size is not None and int(data_size) != size:
-        raise MatlError(f"checkpoint {ckpt_path} is inconsistent: matl_image_size={size} but its config says "
-                        f"data.image_size={data_size}")
-    model = build_model(config["model"], ckpt, ckpt_path)
-    if not hasattr(model, "feature_net"):
-        raise MatlError(f"checkpoint {ckpt_path} is a {type(model).__name__}, which cannot enrol new objects: "
-                        "predict needs an embedding model (model=matl or model=tl)")
-    model.eval()
-    model.homography_config = config.get("data", {}).get("homography")  # the training warps, for calibration
-    return model.to(device), size, num_anchors, file_sha256(ckpt_path)
 
 
 def _search_factory(search: str | SearchFactory | None) -> SearchFactory:

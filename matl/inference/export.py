@@ -373,7 +373,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         raise MatlError(f"format={cfg.format} is invalid: use {' or '.join(FORMATS)}")
     if str(cfg.format) == "onnx":
         require_onnxruntime()
-    from matl.inference.api import load_embedding_model
+    from matl.models.checkpoint import load_embedding_model
     model, size, num_anchors, sha = load_embedding_model(cfg.ckpt)
     stn = getattr(model, "stn", None)
     meta = {"N": num_anchors, "checkpoint": str(cfg.ckpt), "checkpoint_sha256": sha,

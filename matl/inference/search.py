@@ -96,7 +96,7 @@ class ExactSearch:
         # per-op cost (a single query's search is a handful of small ops)
         self._numpy = None
         if self.features.device.type == "cpu" and self.features.dtype == torch.float32 and len(features) <= chunk:
-            self._numpy = (self.features.numpy().T, self.sq_norms.numpy())
+            self._numpy = (self.features.detach().numpy().T, self.sq_norms.detach().numpy())
 
     def search(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if (self._numpy is not None and len(queries) <= SMALL_BATCH and len(self.features)

@@ -220,8 +220,10 @@ def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
     assert _check(_cfg(tmp_path, "condition=all"))[0] == list(CONDITIONS)
     assert _check(_cfg(tmp_path, "condition=[view,clean]", "methods=[sift]")) == (["view", "clean"], ["sift"])
     common = ["ckpt=c", "threshold=null"]
-    assert predict_args("matl_refine", common) == [*common, "refine=true", "foreground=grabcut"]
-    assert predict_args("matl", common, "none") == [*common, "refine=false", "foreground=none"]
+    refined = predict_args("matl_refine", common)
+    assert refined == [*common, "refine=true", "foreground=grabcut", "runtime=onnxruntime"]
+    plain = predict_args("matl", common, "none", "torch")
+    assert plain == [*common, "refine=false", "foreground=none", "runtime=torch"]
     assert predict_args("sift_ecc", common) == ["ckpt=c", "baseline=sift_ecc", "threshold=null"]
     assert predict_args("xfeat_lighterglue", common) == ["ckpt=c", "baseline=xfeat_lighterglue", "threshold=null"]
     assert _check(_cfg(tmp_path, "methods=[matl,lightglue,xfeat,xfeat_lighterglue]"))[1] == [

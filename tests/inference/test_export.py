@@ -121,7 +121,7 @@ def test_closed_form_singular_values_equal_svdvals() -> None:
 
 
 def test_onnx_export_runs_in_onnxruntime_like_eager(tmp_path: Path) -> None:
-    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
     from matl.inference.export import OnnxNetwork
 
     feature_net, stn = tiny_networks(2)
@@ -137,7 +137,7 @@ def test_onnx_export_runs_in_onnxruntime_like_eager(tmp_path: Path) -> None:
 
 
 def test_onnx_query_net_guard_equals_the_stn_guard(tmp_path: Path) -> None:
-    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
     from matl.inference.export import OnnxNetwork
 
     bad = torch.stack([torch.full((3, 3), float("nan")), torch.zeros(3, 3), torch.diag(torch.tensor([1.0, 1.0, 1e-5])),
@@ -151,7 +151,7 @@ def test_onnx_query_net_guard_equals_the_stn_guard(tmp_path: Path) -> None:
 
 
 def test_onnx_from_a_checkpoint_describes_the_files(tmp_path: Path, cache_dir: Path) -> None:
-    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
     ckpt = write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir)
     out = tmp_path / "exported"
     info = export(compose_config("export", [f"ckpt={ckpt}", f"out={out}", "format=onnx"], tmp_path / "run"))
@@ -171,7 +171,7 @@ def test_onnx_from_a_checkpoint_describes_the_files(tmp_path: Path, cache_dir: P
 def test_onnx_without_onnxruntime_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails as if not installed
     feature_net, stn = tiny_networks()
-    with pytest.raises(MatlError, match=r'onnxruntime is not installed\): pip install -e "\.\[onnx\]"'):
+    with pytest.raises(MatlError, match=r'onnxruntime is not installed\): pip install "onnx>=1\.15" "onnxruntime'):
         export_inference(feature_net, stn, S, tmp_path, "onnx")
     assert not list(tmp_path.iterdir())  # nothing written
 
@@ -180,7 +180,7 @@ def test_bench_onnx_entry_answers_like_the_eager_recognizer(tmp_path: Path, cach
                                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """``query_ms.matl_onnx`` of matl.bench (matl.evaluation.speed.measure_onnx) times a recognizer whose
     networks are the exported ONNX files; it finds the anchors eager finds."""
-    pytest.importorskip("onnxruntime", reason='format=onnx needs the onnx extra: pip install -e ".[onnx]"')
+    pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
     from matl.evaluation.speed import measure_onnx
     from matl.inference.api import load_embedding_model
     from matl.inference.gallery import build_gallery
