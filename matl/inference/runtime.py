@@ -1,7 +1,7 @@
 """The query networks in onnxruntime (``runtime=onnxruntime``): ``c(s(query))`` for CPU queries.
 
 What a query costs at a batch of one on the CPU is the convolutions and the per-op overhead around
-them. onnxruntime's CPU kernels run ``s()``'s regressor and ``c()`` several times faster than torch's
+them. onnxruntime's CPU kernels run ``s()``'s regressor and ``c()`` about twice as fast as torch's
 oneDNN path at these sizes (docs/speed.md), so :class:`OnnxRuntimeQueryPath` runs each network as an
 ONNX graph in onnxruntime and does the rest of ``s()`` outside any graph:
 
@@ -13,12 +13,12 @@ ONNX graph in onnxruntime and does the rest of ``s()`` outside any graph:
   degeneracy guard and the final warp run per query in NumPy (float64 matrices) and OpenCV:
   ``cv2.warpPerspective`` (bilinear, zeros outside) of the channels-last query by
   ``pixel_H_norm @ query_H_anchor_norm @ norm_H_pixel`` samples where ``grid_sample(align_corners=True)``
-  does, at a quarter of its cost; OpenCV quantises sample positions to 1/32 px, which moves the poses
-  by about 1e-4 px (checked when the path is built and in the tests);
+  does, at a fraction of its cost; OpenCV quantises sample positions to 1/32 px, which moves the poses
+  by about 1e-4 px (``tests/inference/test_runtime.py`` holds them to torch's within 1e-3 px);
 * search, pose and refinement are the recognizer's own, unchanged.
 
 Built at the first call; the regressor and ``c()`` are checked against the torch modules on random
-images (``tolerance``). If onnxruntime or the export is missing or fails, the path records why
+images (:data:`TOLERANCE`). If onnxruntime or the export is missing or fails, the path records why
 (``failure``) and the recognizer answers with torch.
 """
 
