@@ -152,8 +152,6 @@ class AnchorTemplates:
         return held + sum(mask.nbytes for mask in self.outside or ())
 
 
-
-
 def _inverse_update(p: np.ndarray) -> np.ndarray:
     """``inv(I + D(p))`` ``(3, 3)`` of ``p`` ``(8,)`` (the adjugate; the scale is divided out later)."""
     a, b, c, d, e, f, g, h = p.tolist()  # Python floats: the same float64 arithmetic without NumPy scalars

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from matl.inference.recognizer import QueryGraph
+from matl.inference.recognizer import QueryGraph, weights_key
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 
@@ -190,7 +190,7 @@ class QuantizedQueryPath:
             raise RuntimeError(reason)
         self.feature_net, self.stn, self.image_size = feature_net, stn, int(image_size)
         self._tensors = [*stn.parameters(), *feature_net.parameters()]
-        self._key = self._weights_key()
+        self._key = weights_key(self._tensors)
         torch.backends.quantized.engine = DEFAULT_ENGINE
         with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
             warnings.filterwarnings("ignore", category=UserWarning)
@@ -207,12 +207,9 @@ class QuantizedQueryPath:
                     if not torch.allclose(a.float(), b.float(), atol=1e-3, rtol=0):
                         raise RuntimeError("the traced int8 graph differs from its module")
 
-    def _weights_key(self) -> list[tuple[int, int]]:
-        return [(t.data_ptr(), t._version) for t in self._tensors]
-
     def matches(self) -> bool:
         """True while the float networks' weights are the ones quantised."""
-        return self._weights_key() == self._key
+        return weights_key(self._tensors) == self._key
 
     def _quantize(self, calibration: torch.Tensor, batch_size: int) -> tuple[nn.Module, nn.Module]:
         from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx

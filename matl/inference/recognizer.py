@@ -38,15 +38,22 @@ from matl.models.feature import FeatureNet
 from matl.models.stn import SpatialTransformer, regress_homography
 
 # nearest lives in matl.inference.search
-__all__ = ["CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest"]
+__all__ = ["MODAL_LAYERS", "CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest",
+           "weights_key"]
 
 log = logging.getLogger(__name__)
 
 #: layers whose output depends on training / eval mode
-_MODAL = (nn.modules.batchnorm._BatchNorm, nn.modules.dropout._DropoutNd)
+MODAL_LAYERS = (nn.modules.batchnorm._BatchNorm, nn.modules.dropout._DropoutNd)
 
 #: largest difference accepted between the compiled query path and the eager networks when it is built
 COMPILED_TOLERANCE = 1e-4
+
+
+def weights_key(tensors: list[torch.Tensor]) -> list[tuple[int, int]]:
+    """Storage and version counter of each tensor: changes when a weight is replaced, moved or modified in place
+    (an optimiser step, ``load_state_dict``), so a path built from the weights knows when to rebuild."""
+    return [(t.data_ptr(), t._version) for t in tensors]
 
 
 @dataclass
@@ -155,11 +162,9 @@ class CompiledQueryPath:
             return False
         modules = (*stn.modules(), *feature_net.modules())
         tensors = (*stn.parameters(), *stn.buffers(), *feature_net.parameters(), *feature_net.buffers())
-        return (torch.backends.mkldnn.is_available() and not any(m.training for m in modules if isinstance(m, _MODAL))
+        return (torch.backends.mkldnn.is_available()
+                and not any(m.training for m in modules if isinstance(m, MODAL_LAYERS))
                 and all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.int64) for t in tensors))
-
-    def _weights_key(self) -> list[tuple[int, int]]:
-        return [(t.data_ptr(), t._version) for t in self._tensors]
 
     def _build(self) -> torch.jit.ScriptModule:
         graph = QueryGraph(self.stn, self.feature_net, self.image_size)
@@ -176,7 +181,7 @@ class CompiledQueryPath:
         networks no longer qualify (:meth:`supports`) or building the graph failed (``failure``)."""
         if self.failure is not None:
             return None
-        key = self._weights_key()
+        key = weights_key(self._tensors)
         if self._graph is None or key != self._key:
             self._graph = None
             if not self.supports(self.feature_net, self.stn):

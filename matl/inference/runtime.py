@@ -32,6 +32,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from matl.geometry import normalisation_matrices
+from matl.inference.recognizer import MODAL_LAYERS, weights_key
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 
@@ -45,7 +47,6 @@ RUNTIMES = ("torch", "onnxruntime")
 #: largest difference accepted between a network in onnxruntime and the torch module when the path is built
 TOLERANCE = 1e-4
 _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-_MODAL = (nn.modules.batchnorm._BatchNorm, nn.modules.dropout._DropoutNd)
 
 
 class _ChannelsLast(nn.Module):
@@ -78,7 +79,7 @@ def unsupported(feature_net: nn.Module, stn: nn.Module | None) -> str | None:
     if not isinstance(feature_net, FeatureNet):
         return f"{type(feature_net).__name__} is not MATL's feature net"
     modules = (*stn.modules(), *feature_net.modules())
-    if any(m.training for m in modules if isinstance(m, _MODAL)):
+    if any(m.training for m in modules if isinstance(m, MODAL_LAYERS)):
         return "batch norm or dropout in training mode"
     tensors = (*stn.parameters(), *stn.buffers(), *feature_net.parameters(), *feature_net.buffers())
     if not all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.int64) for t in tensors):
@@ -110,14 +111,10 @@ class OnnxRuntimeQueryPath:
         self._graphs: tuple[bytes, bytes] | None = None
         self._sessions: dict[int, tuple[Any, Any]] = {}
         self.failure: str | None = None
-        S = self.image_size
-        norm_H_pixel = np.array([[2.0 / (S - 1), 0.0, -1.0], [0.0, 2.0 / (S - 1), -1.0], [0.0, 0.0, 1.0]])
-        self._norm_H_pixel, self._pixel_H_norm = norm_H_pixel, np.linalg.inv(norm_H_pixel)
+        pixel_H_norm, norm_H_pixel = normalisation_matrices((self.image_size, self.image_size), dtype=torch.float64)
+        self._pixel_H_norm, self._norm_H_pixel = pixel_H_norm[0].numpy(), norm_H_pixel[0].numpy()
 
     # ------------------------------------------------------------------------------ graphs
-    def _weights_key(self) -> list[tuple[int, int]]:
-        return [(t.data_ptr(), t._version) for t in self._tensors]
-
     def _export(self) -> tuple[bytes, bytes]:
         """The regressor (channels-last input) and ``c()`` as ONNX bytes, each checked against its module."""
         from matl.inference.export import onnx_bytes, require_onnxruntime
@@ -153,7 +150,7 @@ class OnnxRuntimeQueryPath:
         """The two onnxruntime sessions at the current thread count, (re)built as needed; None on failure."""
         if self.failure is not None:
             return None
-        key = self._weights_key()
+        key = weights_key(self._tensors)
         if self._graphs is None or key != self._key:
             self._graphs, self._sessions = None, {}
             reason = unsupported(self.feature_net, self.stn)
