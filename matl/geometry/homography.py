@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import cv2
 import numpy as np
 import torch
 from kornia.geometry.conversions import normalize_homography
@@ -195,6 +196,16 @@ def degenerate_homographies(H: torch.Tensor, max_condition: float, eye: torch.Te
         eye = torch.eye(3, dtype=H.dtype, device=H.device)
     sv = torch.linalg.svdvals(torch.where(finite[:, None, None], H, eye))
     return ~finite | (sv[:, -1] * max_condition <= sv[:, 0])
+
+
+def degenerate_matrix(H: np.ndarray, max_condition: float) -> bool:
+    """:func:`degenerate_homographies`'s rule for one ``(3, 3)`` float64 NumPy matrix: non-finite, or
+    ``sv_min * max_condition <= sv_max``. In OpenCV, a few microseconds (a single query's pose is checked
+    without a torch op)."""
+    if not np.isfinite(H).all():
+        return True
+    sv = cv2.SVDecomp(H, flags=cv2.SVD_NO_UV)[0]  # (3, 1), descending
+    return bool(sv[2, 0] * max_condition <= sv[0, 0])
 
 
 def guard_homographies(H: torch.Tensor, max_condition: float, eye: torch.Tensor | None = None

@@ -54,12 +54,14 @@ import cv2
 import numpy as np
 import torch
 
+from matl.geometry import degenerate_matrix
+from matl.inference import fast_refine_kernels as kernels
 from matl.inference.refine import RefineResult
 from matl.utils.errors import MatlError
 
 __all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
 
-FAST_LOSSES = ("l2", "huber", "cauchy")
+FAST_LOSSES = kernels.LOSS_CODES
 REGIONS = ("frame", "foreground", "auto")
 STARTS = ("stn", "align")
 _FOREGROUND = 1e-3  # an anchor pixel brighter than this in any channel is foreground (backgrounds are 0)
@@ -152,15 +154,6 @@ class AnchorTemplates:
         return held + sum(mask.nbytes for mask in self.outside or ())
 
 
-def _inverse_update(p: np.ndarray) -> np.ndarray:
-    """``inv(I + D(p))`` ``(3, 3)`` of ``p`` ``(8,)`` (the adjugate; the scale is divided out later)."""
-    a, b, c, d, e, f, g, h = p.tolist()  # Python floats: the same float64 arithmetic without NumPy scalars
-    a, e = a + 1.0, e + 1.0
-    return np.array([[e - f * h, c * h - b, b * f - c * e],
-                     [f * g - d, a - c * g, c * d - a * f],
-                     [d * h - e * g, b * g - a * h, a * e - b * d]])
-
-
 def _corner_jacobian() -> np.ndarray:
     """``(8, 8)``: ``p @ J`` is the first-order motion ``(x0, y0, x1, y1, ...)`` of the 4 normalised corners
     under ``I + D(p)``."""
@@ -182,12 +175,11 @@ def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
     return out
 
 
-def _luminance(images: torch.Tensor) -> np.ndarray:
-    """``(B, 3, H, W)`` (or ``(B, 1, H, W)``) -> ``(B, H, W)`` float32 NumPy luminance."""
+def _luminance(images: torch.Tensor) -> list[tuple[np.ndarray, float]]:
+    """``(B, 3, H, W)`` (or ``(B, 1, H, W)``) -> per image, its ``(H, W)`` float32 luminance and the std of its
+    foreground (pixels above ``_FOREGROUND``)."""
     array = images.detach().float().cpu().numpy()
-    if array.shape[1] == 1:
-        return np.ascontiguousarray(array[:, 0])
-    return array[:, 0] * _LUMA[0] + array[:, 1] * _LUMA[1] + array[:, 2] * _LUMA[2]  # per pixel: any batch alike
+    return [kernels.luminance(image, _LUMA, _FOREGROUND) for image in array]
 
 
 class FastRefiner:
@@ -224,7 +216,7 @@ class FastRefiner:
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
                  loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
                  min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.25,
-                 threads: int | None = 1, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
+                 threads: int | None = None, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
                  auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined") -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
@@ -253,6 +245,7 @@ class FastRefiner:
         if start not in STARTS:
             raise MatlError(f"refiner.start must be one of {', '.join(STARTS)}, got {start!r}")
         self.start = start
+        self._loss_code = FAST_LOSSES.index(loss)
         if int(auto_band) < 0 or not float(auto_leak) >= 0.0 or not float(auto_level) >= 0.0 or auto_from not in (
                 "refined", "start"):
             raise MatlError(f"refiner.auto_band, auto_level and auto_leak must be >= 0 and auto_from refined or start; "
@@ -335,7 +328,8 @@ class FastRefiner:
         if anchors.ndim != 4:
             raise MatlError(f"anchors must be (G, C, H, W), got {tuple(anchors.shape)}")
         start = time.perf_counter()
-        gray = _luminance(anchors)
+        kernels.warm_up()  # compiled (or loaded from numba's cache) here, at enrolment, not at the first query
+        gray = [image for image, _ in _luminance(anchors)]
         fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
         # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
         kinds = {"frame": ("frame",), "foreground": ("foreground",), "auto": ("frame", "foreground")}[self.region]
@@ -356,92 +350,37 @@ class FastRefiner:
         return self
 
     # ------------------------------------------------------------------------------ objective
-    def _loss(self, r: np.ndarray, anchor: AnchorLevel, delta: float) -> tuple[float, bool]:
-        """Mean robust loss over the region of unscaled residuals ``r`` ``(h, w)`` (0 off the region), ``delta`` in
-        the residuals' units (the caller divides by ``scale^2``), and whether any residual is beyond ``delta``."""
-        flat = r.ravel()
-        if self.loss == "l2":
-            return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
-        if self.loss == "huber":
-            low, high = cv2.minMaxLoc(r)[:2]
-            if max(-low, high) <= delta:  # every residual in the quadratic part
-                return 0.5 * float(np.dot(flat, flat)) / anchor.total, False
-            # min(|r|, d) * (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
-            a = np.abs(flat)
-            m = cv2.threshold(a, delta, 0.0, cv2.THRESH_TRUNC)[1].ravel()
-            return (float(np.dot(m, a)) - 0.5 * float(np.dot(m, m))) / anchor.total, True
-        return 0.5 * delta * delta * float(np.log1p(np.square(flat / delta)).sum()) / anchor.total, True
-
     def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float
-                  ) -> tuple[float, np.ndarray, float, bool]:
-        """Loss, unscaled residuals ``(h, w)``, gain and whether the robust loss down-weights any residual,
-        at the normalised pose ``H`` ``(3, 3)``."""
+                  ) -> tuple[float, np.ndarray, float, np.ndarray]:
+        """Loss, unscaled residuals ``(h, w)``, gain and the query warped into the anchor frame ``(h, w)``, at the
+        normalised pose ``H`` ``(3, 3)`` (the loss a mean over the region, in units of ``scale``)."""
         M = anchor.pixel_H_norm @ H @ anchor.norm_H_pixel  # anchor level px -> query level px
         warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
                                      borderValue=0)
-        a, f, flat = anchor.image, anchor.fg, warped.ravel()
-        s_fw = float(np.dot(anchor.flat_fg, flat))
-        gain = (float(np.dot(anchor.flat_image, flat)) - anchor.mean * s_fw) * anchor.inv_var
-        bias = s_fw * anchor.inv_count - gain * anchor.mean
-        r = cv2.scaleAdd(a, -gain, warped)               # warped - gain * A
-        if bias != 0.0:
-            r = cv2.scaleAdd(f, -bias, r)                # - bias * F
-        if anchor.region is not None:
-            r = cv2.multiply(r, anchor.region)
-        loss, robust = self._loss(r, anchor, self.delta * scale)
-        loss /= scale * scale
-        return (loss if math.isfinite(loss) else math.inf), r, gain, robust
-
-    def _normal_equations(self, r: np.ndarray, anchor: AnchorLevel, gain: float, scale: float, robust: bool
-                          ) -> tuple[np.ndarray, np.ndarray]:
-        """``(A (8, 8), b (8, 1))`` of the IRLS Gauss-Newton step ``A dp = b`` (``robust``: some weight is below 1)."""
-        rs = r.ravel()[anchor.index]
-        sdT = anchor.sdT
-        A = anchor.hessian
-        if robust and self.loss == "huber":
-            d = self.delta * scale
-            a = np.abs(rs)
-            out = np.flatnonzero(a > d)  # few pixels: the Hessian is corrected on them only
-            if len(out):
-                weights = (d / a[out]).astype(np.float32)
-                rs = rs.copy()
-                rs[out] *= weights
-                sd_out = sdT[:, out]
-                A = A - (sd_out * (1.0 - weights)) @ sd_out.T
-        elif robust:  # cauchy
-            weights = (1.0 / (1.0 + np.square(rs / (self.delta * scale)))).astype(np.float32)
-            A = (sdT * weights) @ sdT.T
-            rs = rs * weights
-        return A.astype(np.float64), ((sdT @ rs).astype(np.float64) / gain).reshape(8, 1)
+        region = anchor.region if anchor.region is not None else anchor.fg
+        total, r, gain = kernels.objective(warped, anchor.image, anchor.fg, region, anchor.region is not None,
+                                           anchor.mean, anchor.inv_var, anchor.inv_count, self._loss_code,
+                                           self.delta * scale)
+        return total / (anchor.total * scale * scale), r, gain, warped
 
     def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
-               ) -> tuple[np.ndarray, float]:
-        """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose and its loss."""
-        loss, r, gain, robust = self._evaluate(query, anchor, H, scale)
-        lam = self.damping
+               ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose, its loss and its warped query."""
+        loss, r, gain, warped = self._evaluate(query, anchor, H, scale)
+        lam, delta = self.damping, self.delta * scale
         A = b = None
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
                 break
             if A is None:  # the normal equations at the current (best) pose
-                A, b = self._normal_equations(r, anchor, gain, scale, robust)
-            damped = A.copy()  # A + lam * diag(A) + 1e-9 I, summed in that order
-            diagonal = damped.reshape(-1)[::9]  # a view of the diagonal (a strided slice: no index arrays)
-            diagonal += lam * A.diagonal()
-            diagonal += 1e-9
-            ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_CHOLESKY)
+                A, b = kernels.normal_equations(r, anchor.index, anchor.sdT, anchor.hessian, gain, self._loss_code,
+                                                delta)
+            ok, candidate, step = kernels.lm_step(A, b, lam, H, anchor.corner_J)
             if not ok:
-                ok, dp = cv2.solve(damped, b, flags=cv2.DECOMP_SVD)
-            dp = dp.ravel()
-            if not ok or not math.isfinite(float(dp.sum())):  # a non-finite entry makes the sum so
                 break
-            candidate = H @ _inverse_update(dp)
-            candidate = candidate / candidate[2, 2]
-            cand_loss, cand_r, cand_gain, cand_robust = self._evaluate(query, anchor, candidate, scale)
-            motion = (dp @ anchor.corner_J).tolist()  # px of the level, (x0, y0, x1, y1, ...)
-            step = math.sqrt(max(x * x + y * y for x, y in zip(motion[0::2], motion[1::2], strict=True)))
+            cand_loss, cand_r, cand_gain, cand_warped = self._evaluate(query, anchor, candidate, scale)
             if cand_loss < loss:
-                H, loss, r, gain, robust = candidate, cand_loss, cand_r, cand_gain, cand_robust
+                H, loss, r, gain, warped = candidate, cand_loss, cand_r, cand_gain, cand_warped
                 lam = max(lam * 0.1, 1e-9)
                 A = b = None
                 if step < self.tolerance:
@@ -450,42 +389,41 @@ class FastRefiner:
                 lam = min(lam * 10.0, 1e9)
                 if step < self.tolerance:  # a step this small does not lower the loss: converged
                     break
-        return H, loss
-
-    def _well_conditioned(self, H: np.ndarray) -> bool:
-        if not np.all(np.isfinite(H)):
-            return False
-        sv = np.linalg.svd(H, compute_uv=False)
-        return bool(sv[-1] > 0 and sv[0] / sv[-1] < self.max_condition)
+        return H, loss, warped
 
     def _descend(self, pyramid: list[np.ndarray], anchor: list[AnchorLevel], H: np.ndarray, scale: float,
-                 timing: bool) -> tuple[np.ndarray, float]:
-        """Coarse to fine from the normalised pose ``H``; the final normalised pose and its loss at full size."""
-        loss = math.inf
+                 timing: bool) -> tuple[np.ndarray, float, np.ndarray]:
+        """Coarse to fine from the normalised pose ``H``; the final normalised pose, its loss at full size and the
+        full-size query warped by it."""
+        loss, warped = math.inf, pyramid[0]
         times = [0.0] * len(pyramid)
         for level in reversed(range(len(pyramid))):  # coarsest first
             t0 = time.perf_counter() if timing else 0.0
-            H, loss = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
+            H, loss, warped = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
             if timing:
                 times[level] = 1e3 * (time.perf_counter() - t0)
         if timing:
             self._level_ms = times
-        return H, loss
+        return H, loss, warped
 
-    def leak(self, query: np.ndarray, full: AnchorLevel, outside: np.ndarray, H: np.ndarray) -> float:
+    def leak(self, query: np.ndarray, full: AnchorLevel, outside: np.ndarray, H: np.ndarray,
+             warped: np.ndarray | None = None) -> float:
         """``region=auto``'s statistic: the query's pixels brighter than ``auto_level`` (luminance in [0, 1]) that the
         normalised pose ``H`` puts in the anchor frame farther than ``auto_band`` px from the anchor's foreground, as a
-        fraction of the foreground's area."""
-        M = full.pixel_H_norm @ H @ full.norm_H_pixel
-        warped = cv2.warpPerspective(query, M, full.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
-                                     borderValue=0)
+        fraction of the foreground's area (``warped``: ``query`` already warped into the anchor frame by ``H``)."""
+        if warped is None:
+            M = full.pixel_H_norm @ H @ full.norm_H_pixel
+            warped = cv2.warpPerspective(query, M, full.size[::-1], flags=_WARP_FLAGS,
+                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         seen = cv2.countNonZero(cv2.bitwise_and((warped > self.auto_level).view(np.uint8), outside))
         return seen / max(full.count, 1.0)
 
     def refine_one(self, query: np.ndarray, anchor: list[AnchorLevel], query_H_anchor: np.ndarray,
                    timing: bool = False, foreground: list[AnchorLevel] | None = None,
-                   outside: np.ndarray | None = None) -> tuple[np.ndarray, float, float, bool]:
-        """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``.
+                   outside: np.ndarray | None = None, std: float | None = None
+                   ) -> tuple[np.ndarray, float, float, bool]:
+        """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``
+        (``std``: the std of the query's foreground when known).
 
         ``region=auto`` passes the anchor's ``region=foreground`` levels and its ``outside`` mask too: after the
         whole-frame refinement, a query with more than ``auto_leak`` of the anchor's foreground area in non-black
@@ -502,17 +440,19 @@ class FastRefiner:
         full = anchor[0]
         H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
         H0n = H0n / H0n[2, 2]
-        std = cv2.meanStdDev(query, mask=(query > _FOREGROUND).view(np.uint8))[1]
-        scale = max(float(std[0, 0]), self.min_std)
+        if std is None:
+            std = kernels.luminance(query[None], _LUMA, _FOREGROUND)[1]
+        scale = max(std, self.min_std)
         raw = query
         query = self._blurred(query)
         pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
-        H, loss = self._descend(pyramid, anchor, H0n, scale, timing)
-        if foreground is not None and outside is not None and self.leak(raw, full, outside, H) > self.auto_leak:
+        H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing)
+        if foreground is not None and outside is not None and self.leak(
+                raw, full, outside, H, warped if raw is query else None) > self.auto_leak:
             anchor, full = foreground, foreground[0]
-            H, loss = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
+            H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
         loss_before = self._evaluate(query, full, H0n, scale)[0]
-        accepted = loss < loss_before and self._well_conditioned(H)
+        accepted = loss < loss_before and not degenerate_matrix(H, self.max_condition)
         if not accepted:
             return H0, loss_before, loss_before, False
         H_px = full.pixel_H_norm @ H @ full.norm_H_pixel
@@ -554,10 +494,11 @@ class FastRefiner:
         try:
             for i in range(B):
                 k = int(index[i])
+                image, std = gray[i]
                 out[i], before[i], after[i], accepted[i] = self.refine_one(
-                    gray[i], templates.anchors[k], starts[i], timing=B == 1,
+                    image, templates.anchors[k], starts[i], timing=B == 1,
                     foreground=templates.foreground[k] if templates.foreground is not None else None,
-                    outside=templates.outside[k] if templates.outside is not None else None)
+                    outside=templates.outside[k] if templates.outside is not None else None, std=std)
         finally:
             if self.threads is not None and self.threads != previous:
                 cv2.setNumThreads(previous)

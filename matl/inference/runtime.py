@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from matl.geometry import normalisation_matrices
+from matl.geometry import degenerate_matrix, normalisation_matrices
 from matl.inference.recognizer import MODAL_LAYERS, weights_key
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
@@ -177,11 +177,10 @@ class OnnxRuntimeQueryPath:
 
     def _guard(self, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`matl.geometry.guard_homographies` of ``(B, 3, 3)`` float64 matrices."""
-        finite = np.isfinite(H).all(axis=(1, 2))
-        safe = np.where(finite[:, None, None], H, np.eye(3))
-        sv = np.linalg.svd(safe, compute_uv=False)
-        bad = ~finite | (sv[:, -1] * float(self.stn.max_condition) <= sv[:, 0])
-        return np.where(bad[:, None, None], np.eye(3), np.nan_to_num(H)), bad
+        bad = np.array([degenerate_matrix(h, float(self.stn.max_condition)) for h in H])
+        if bad.any():  # a kept matrix is finite
+            H = np.where(bad[:, None, None], np.eye(3), H)
+        return H, bad
 
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor

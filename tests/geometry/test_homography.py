@@ -14,6 +14,7 @@ from matl.geometry import (
     compose_query_H_canon,
     corner_error_px,
     degenerate_homographies,
+    degenerate_matrix,
     frobenius_pose_error,
     guard_homographies,
     normalisation_matrices,
@@ -152,6 +153,9 @@ def test_degeneracy_rule_hand_computed() -> None:
     ])
     assert degenerate_homographies(H, 1e4).tolist() == [False, True, False, True, True, True]
     assert degenerate_homographies(H.double(), 1e3).tolist() == [False, True, True, True, True, True]
+    # the single-matrix NumPy rule (a query's pose in the onnxruntime path and the fast refiner) agrees
+    assert [degenerate_matrix(h, 1e4) for h in H.double().numpy()] == [False, True, False, True, True, True]
+    assert [degenerate_matrix(h, 1e3) for h in H.double().numpy()] == [False, True, True, True, True, True]
 
 
 def test_guard_replaces_degenerate_by_identity_and_keeps_the_gradient_of_the_rest() -> None:

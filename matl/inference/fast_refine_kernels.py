@@ -1,0 +1,236 @@
+"""Compiled inner loops of :class:`~matl.inference.fast_refine.FastRefiner` (numba, one pass over the pixels each).
+
+A Gauss-Newton iteration of the fast refiner is a handful of small array operations (a gain / bias fit, the
+residuals, a robust loss, the normal equations over the textured pixels, an 8 x 8 damped solve, the
+compositional update); at 100 x 100 px each is a few microseconds of work but costs as much again to call
+from Python. These functions do each group in one compiled pass; the warp itself stays in OpenCV
+(``cv2.warpPerspective``: its vectorised bilinear sampling is several times faster than a scalar loop).
+
+Every function is pure (arrays in, new arrays out) and works in float64 internally; ``loss_code`` is the
+index of the robust loss in :data:`LOSS_CODES`. ``cache=True`` keeps the machine code beside this file, so
+only the first run of an installation compiles (about a second per function); :func:`warm_up` compiles them
+up front (a refined recognizer calls it at enrolment, so no query pays for it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["LOSS_CODES", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
+
+#: the robust losses in the order of ``loss_code``
+LOSS_CODES = ("l2", "huber", "cauchy")
+
+_JIT = {"cache": True, "nogil": True, "boundscheck": False}
+#: reductions may be reordered (vectorised); NaN and infinity keep their meaning (the loss guard relies on them)
+_REDUCE = {**_JIT, "fastmath": {"reassoc", "contract", "arcp", "nsz"}}
+
+
+@njit(**_REDUCE)
+def luminance(image: np.ndarray, weights: np.ndarray, level: float) -> tuple[np.ndarray, float]:
+    """A query's luminance and the std of its foreground.
+
+    Args:
+        image: ``(C, h, w)`` float32, ``C`` 3 (weighted by ``weights`` ``(3,)``) or 1 (taken as is).
+        level: a pixel brighter than this is foreground.
+    Returns:
+        ``(gray (h, w) float32, std)``: the population std of ``gray`` over its pixels above ``level`` (0 if none).
+    """
+    _, h, w = image.shape
+    gray = image[0].copy() if image.shape[0] == 1 else (
+        weights[0] * image[0] + weights[1] * image[1] + weights[2] * image[2])
+    flat = gray.ravel()
+    count = 0.0
+    total = 0.0
+    for i in range(h * w):
+        if flat[i] > level:
+            count += 1.0
+            total += flat[i]
+    if count == 0.0:
+        return gray, 0.0
+    mean = total / count
+    spread = 0.0
+    for i in range(h * w):
+        if flat[i] > level:
+            spread += (flat[i] - mean) ** 2
+    return gray, math.sqrt(spread / count)
+
+
+@njit(**_REDUCE)
+def objective(warped: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray, has_region: bool,
+              mean: float, inv_var: float, inv_count: float, loss_code: int, delta: float
+              ) -> tuple[float, np.ndarray, float]:
+    """Sum of the robust loss of the residuals at one pose, the residuals and the gain.
+
+    ``r = (warped - gain * image - bias * fg) * region`` with ``gain`` / ``bias`` the least-squares fit of
+    ``warped`` by ``image`` over ``fg`` (``mean``, ``1 / var`` and ``1 / count`` of ``image`` over ``fg`` given);
+    the loss of a residual is ``r^2 / 2`` (l2), Huber's (``|r| <= delta``: ``r^2 / 2``, else
+    ``delta (|r| - delta / 2)``) or Cauchy's (``delta^2 / 2 log(1 + (r / delta)^2)``).
+
+    Args:
+        warped, image, fg: ``(h, w)`` float32, the query warped into the anchor frame, the anchor's luminance and
+            its foreground indicator.
+        region: ``(h, w)`` float32 0/1 pixels of the loss when ``has_region`` (else unused).
+    Returns:
+        ``(loss sum, r (h, w) float32, gain)``; the sum is ``inf`` when not finite.
+    """
+    flat_w, flat_a, flat_f = warped.ravel(), image.ravel(), fg.ravel()
+    s_fw = 0.0
+    s_aw = 0.0
+    for i in range(flat_w.shape[0]):
+        v = np.float64(flat_w[i])
+        s_fw += flat_f[i] * v
+        s_aw += flat_a[i] * v
+    gain = (s_aw - mean * s_fw) * inv_var
+    bias = s_fw * inv_count - gain * mean
+    g32, b32 = np.float32(gain), np.float32(bias)
+    r = warped - g32 * image - b32 * fg
+    if has_region:
+        r *= region
+    flat = r.ravel()
+    total = 0.0
+    if loss_code == 0:
+        for i in range(flat.shape[0]):
+            total += np.float64(flat[i]) * flat[i]
+        total *= 0.5
+    elif loss_code == 1:  # min(|r|, d) (|r| - min(|r|, d) / 2): r^2 / 2 inside, d (|r| - d / 2) outside
+        for i in range(flat.shape[0]):
+            a = abs(np.float64(flat[i]))
+            m = min(a, delta)
+            total += m * (a - 0.5 * m)
+    else:
+        for i in range(flat.shape[0]):
+            total += math.log1p((flat[i] / delta) ** 2)
+        total *= 0.5 * delta * delta
+    if not math.isfinite(total):
+        total = math.inf
+    return total, r, gain
+
+
+@njit(**_REDUCE)
+def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, gain: float,
+                     loss_code: int, delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(A (8, 8), b (8,))`` float64 of the iteratively re-weighted Gauss-Newton step ``A dp = b``.
+
+    ``A = sum_j w_j sd_j sd_j^T`` and ``b = sum_j w_j r_j sd_j / gain`` over the textured pixels ``index``
+    (``(n,)`` flat indices into ``r`` ``(h, w)``; ``sdT`` ``(8, n)`` their steepest-descent images), ``w`` the robust
+    loss's weight (``l2``: 1; Huber: ``min(1, delta / |r|)``; Cauchy: ``1 / (1 + (r / delta)^2)``). ``hessian`` is the
+    unweighted ``sd^T sd``: l2 returns it, Huber corrects it on the pixels beyond ``delta`` only.
+    """
+    flat = r.ravel()
+    n = index.shape[0]
+    weighted = np.empty(n)  # w_j r_j
+    weights = np.ones(n)
+    for j in range(n):
+        value = np.float64(flat[index[j]])
+        if loss_code == 1:
+            a = abs(value)
+            if a > delta:
+                weights[j] = delta / a
+        elif loss_code == 2:
+            weights[j] = 1.0 / (1.0 + (value / delta) ** 2)
+        weighted[j] = value * weights[j]
+    b = np.zeros(8)
+    for k in range(8):
+        row = sdT[k]
+        acc = 0.0
+        for j in range(n):
+            acc += row[j] * weighted[j]
+        b[k] = acc / gain
+    if loss_code == 0:
+        return hessian.astype(np.float64), b
+    if loss_code == 1:  # the Hessian less (1 - w) of each pixel beyond delta (few of them)
+        A = hessian.astype(np.float64)
+        for j in range(n):
+            if weights[j] < 1.0:
+                for k in range(8):
+                    sk = np.float64(sdT[k, j]) * (weights[j] - 1.0)
+                    for m in range(k + 1):
+                        A[k, m] += sk * sdT[m, j]
+    else:
+        A = np.zeros((8, 8))
+        for k in range(8):
+            for m in range(k + 1):
+                acc = 0.0
+                for j in range(n):
+                    acc += np.float64(sdT[k, j]) * sdT[m, j] * weights[j]
+                A[k, m] = acc
+    for k in range(8):  # the lower triangle was accumulated
+        for m in range(k):
+            A[m, k] = A[k, m]
+    return A, b
+
+
+@njit(**_JIT)
+def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: np.ndarray
+            ) -> tuple[bool, np.ndarray, float]:
+    """One Levenberg-Marquardt step of the inverse-compositional update.
+
+    Solves ``(A + lam diag(A) + 1e-9 I) dp = b`` (Cholesky; the pseudo-inverse if that fails), composes
+    ``H @ inv(I + D(dp))`` (normalised so that its ``[2, 2]`` is 1) and measures the step as the largest motion of an
+    image corner, ``|dp @ corner_J|`` per corner (``corner_J`` ``(8, 8)`` in the level's pixels).
+
+    Returns:
+        ``(ok, candidate (3, 3), step px)``; ``ok`` is False for a non-finite step.
+    """
+    D = A.copy()
+    for k in range(8):
+        D[k, k] += lam * A[k, k] + 1e-9
+    L = np.zeros((8, 8))
+    positive = True
+    for k in range(8):
+        s = D[k, k]
+        for m in range(k):
+            s -= L[k, m] * L[k, m]
+        if not s > 0.0:
+            positive = False
+            break
+        L[k, k] = math.sqrt(s)
+        for i in range(k + 1, 8):
+            t = D[i, k]
+            for m in range(k):
+                t -= L[i, m] * L[k, m]
+            L[i, k] = t / L[k, k]
+    if positive:
+        z = np.empty(8)
+        for k in range(8):
+            t = b[k]
+            for m in range(k):
+                t -= L[k, m] * z[m]
+            z[k] = t / L[k, k]
+        dp = np.empty(8)
+        for k in range(7, -1, -1):
+            t = z[k]
+            for m in range(k + 1, 8):
+                t -= L[m, k] * dp[m]
+            dp[k] = t / L[k, k]
+    else:
+        dp = np.linalg.pinv(D) @ b
+    if not np.all(np.isfinite(dp)):
+        return False, H, math.inf
+    # inv(I + D(dp)) up to scale: the adjugate of [[1 + a, b, c], [d, 1 + e, f], [g, h, 1]]
+    a, bb, c, d, e, f, g, hh = dp[0] + 1.0, dp[1], dp[2], dp[3], dp[4] + 1.0, dp[5], dp[6], dp[7]
+    update = np.array([[e - f * hh, c * hh - bb, bb * f - c * e],
+                       [f * g - d, a - c * g, c * d - a * f],
+                       [d * hh - e * g, bb * g - a * hh, a * e - bb * d]])
+    candidate = H @ update
+    candidate = candidate / candidate[2, 2]
+    motion = dp @ corner_J
+    step = 0.0
+    for corner in range(4):
+        step = max(step, math.sqrt(motion[2 * corner] ** 2 + motion[2 * corner + 1] ** 2))
+    return True, candidate, step
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the argument types the refiner passes."""
+    image = np.zeros((4, 4), dtype=np.float32)
+    for channels in (1, 3):
+        luminance(np.zeros((channels, 4, 4), dtype=np.float32), np.ones(3, dtype=np.float32), 0.0)
+    for code in range(len(LOSS_CODES)):
+        r = objective(image, image, image, image, False, 0.0, 1.0, 1.0, code, 1.0)[1]
+        normal_equations(r, np.zeros(1, dtype=np.int32), np.zeros((8, 1), dtype=np.float32), np.eye(8), 1.0, code, 1.0)
+    lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8))
