@@ -197,7 +197,8 @@ class OnnxRuntimeQueryPath:
             warped = np.stack([self._warp(image, h) for image, h in zip(images, H, strict=True)])
             H = H @ regressor.run(None, {"images": warped})[0].astype(np.float64)
         H, bad = self._guard(H)
-        warped = np.stack([np.stack(cv2.split(self._warp(image, h))) for image, h in zip(images, H, strict=True)])
+        warped = np.stack([self._warp(image, h) for image, h in zip(images, H, strict=True)])
+        warped = np.ascontiguousarray(warped.transpose(0, 3, 1, 2))  # channels first, for c()
         features = embedding.run(None, {"images": warped})[0]
         pixel = self._pixel_H_norm @ H @ self._norm_H_pixel
         pixel = (pixel / pixel[:, 2:, 2:]).astype(np.float32)
