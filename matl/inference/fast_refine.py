@@ -350,39 +350,35 @@ class FastRefiner:
         return self
 
     # ------------------------------------------------------------------------------ objective
-    def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float
-                  ) -> tuple[float, np.ndarray, float, np.ndarray]:
-        """Loss, unscaled residuals ``(h, w)``, gain and the query warped into the anchor frame ``(h, w)``, at the
-        normalised pose ``H`` ``(3, 3)`` (the loss a mean over the region, in units of ``scale``)."""
-        M = anchor.pixel_H_norm @ H @ anchor.norm_H_pixel  # anchor level px -> query level px
+    def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float
+                  ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+        """At the pose whose matrix in the level's pixels is ``M`` (anchor px -> query px): the loss (a mean over the
+        region, in units of ``scale``), the gain, the Gauss-Newton system ``A (8, 8)``, ``b (8,)`` there and the
+        query warped into the anchor frame ``(h, w)``."""
         warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
                                      borderValue=0)
         region = anchor.region if anchor.region is not None else anchor.fg
-        total, r, gain = kernels.objective(warped, anchor.image, anchor.fg, region, anchor.region is not None,
-                                           anchor.mean, anchor.inv_var, anchor.inv_count, self._loss_code,
-                                           self.delta * scale)
-        return total / (anchor.total * scale * scale), r, gain, warped
+        total, gain, A, b = kernels.evaluate(warped, anchor.image, anchor.fg, region, anchor.region is not None,
+                                             anchor.mean, anchor.inv_var, anchor.inv_count, anchor.index, anchor.sdT,
+                                             anchor.hessian, self._loss_code, self.delta * scale)
+        return total / (anchor.total * scale * scale), gain, A, b, warped
 
     def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
                ) -> tuple[np.ndarray, float, np.ndarray]:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose, its loss and its warped query."""
-        loss, r, gain, warped = self._evaluate(query, anchor, H, scale)
-        lam, delta = self.damping, self.delta * scale
-        A = b = None
+        loss, gain, A, b, warped = self._evaluate(query, anchor, anchor.pixel_H_norm @ H @ anchor.norm_H_pixel, scale)
+        lam = self.damping
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
                 break
-            if A is None:  # the normal equations at the current (best) pose
-                A, b = kernels.normal_equations(r, anchor.index, anchor.sdT, anchor.hessian, gain, self._loss_code,
-                                                delta)
-            ok, candidate, step = kernels.lm_step(A, b, lam, H, anchor.corner_J)
+            ok, candidate, M, step = kernels.lm_step(A, b, lam, H, anchor.corner_J, anchor.pixel_H_norm,
+                                                     anchor.norm_H_pixel)
             if not ok:
                 break
-            cand_loss, cand_r, cand_gain, cand_warped = self._evaluate(query, anchor, candidate, scale)
+            cand_loss, cand_gain, cand_A, cand_b, cand_warped = self._evaluate(query, anchor, M, scale)
             if cand_loss < loss:
-                H, loss, r, gain, warped = candidate, cand_loss, cand_r, cand_gain, cand_warped
+                H, loss, gain, A, b, warped = candidate, cand_loss, cand_gain, cand_A, cand_b, cand_warped
                 lam = max(lam * 0.1, 1e-9)
-                A = b = None
                 if step < self.tolerance:
                     break
             else:
@@ -451,7 +447,7 @@ class FastRefiner:
                 raw, full, outside, H, warped if raw is query else None) > self.auto_leak:
             anchor, full = foreground, foreground[0]
             H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
-        loss_before = self._evaluate(query, full, H0n, scale)[0]
+        loss_before = self._evaluate(query, full, H0, scale)[0]  # the start's matrix in full-size pixels is H0
         accepted = loss < loss_before and not degenerate_matrix(H, self.max_condition)
         if not accepted:
             return H0, loss_before, loss_before, False

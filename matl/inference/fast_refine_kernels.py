@@ -19,12 +19,12 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["LOSS_CODES", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
+__all__ = ["LOSS_CODES", "evaluate", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
 
 #: the robust losses in the order of ``loss_code``
 LOSS_CODES = ("l2", "huber", "cauchy")
 
-_JIT = {"cache": True, "nogil": True, "boundscheck": False}
+_JIT = {"cache": True, "nogil": True, "boundscheck": False, "error_model": "numpy"}  # x / 0: inf or NaN, no exception
 #: reductions may be reordered (vectorised); NaN and infinity keep their meaning (the loss guard relies on them)
 _REDUCE = {**_JIT, "fastmath": {"reassoc", "contract", "arcp", "nsz"}}
 
@@ -165,8 +165,23 @@ def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian:
 
 
 @njit(**_JIT)
-def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: np.ndarray
-            ) -> tuple[bool, np.ndarray, float]:
+def evaluate(warped: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray, has_region: bool,
+             mean: float, inv_var: float, inv_count: float, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray,
+             loss_code: int, delta: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """:func:`objective` and the :func:`normal_equations` at its residuals in one call (the Gauss-Newton system
+    of every evaluated pose: a rejected step wastes a few microseconds, an accepted one saves a call).
+
+    Returns:
+        ``(loss sum, gain, A (8, 8), b (8,))``.
+    """
+    total, r, gain = objective(warped, image, fg, region, has_region, mean, inv_var, inv_count, loss_code, delta)
+    A, b = normal_equations(r, index, sdT, hessian, gain, loss_code, delta)
+    return total, gain, A, b
+
+
+@njit(**_JIT)
+def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: np.ndarray, pixel_H_norm: np.ndarray,
+            norm_H_pixel: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
     """One Levenberg-Marquardt step of the inverse-compositional update.
 
     Solves ``(A + lam diag(A) + 1e-9 I) dp = b`` (Cholesky; the pseudo-inverse if that fails), composes
@@ -174,7 +189,8 @@ def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: n
     image corner, ``|dp @ corner_J|`` per corner (``corner_J`` ``(8, 8)`` in the level's pixels).
 
     Returns:
-        ``(ok, candidate (3, 3), step px)``; ``ok`` is False for a non-finite step.
+        ``(ok, candidate (3, 3), pixel_H_norm @ candidate @ norm_H_pixel, step px)``: the candidate normalised pose
+        and its matrix in the level's pixels (the warp's); ``ok`` is False for a non-finite step.
     """
     D = A.copy()
     for k in range(8):
@@ -210,7 +226,7 @@ def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: n
     else:
         dp = np.linalg.pinv(D) @ b
     if not np.all(np.isfinite(dp)):
-        return False, H, math.inf
+        return False, H, H, math.inf
     # inv(I + D(dp)) up to scale: the adjugate of [[1 + a, b, c], [d, 1 + e, f], [g, h, 1]]
     a, bb, c, d, e, f, g, hh = dp[0] + 1.0, dp[1], dp[2], dp[3], dp[4] + 1.0, dp[5], dp[6], dp[7]
     update = np.array([[e - f * hh, c * hh - bb, bb * f - c * e],
@@ -222,7 +238,7 @@ def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: n
     step = 0.0
     for corner in range(4):
         step = max(step, math.sqrt(motion[2 * corner] ** 2 + motion[2 * corner + 1] ** 2))
-    return True, candidate, step
+    return True, candidate, pixel_H_norm @ candidate @ norm_H_pixel, step
 
 
 def warm_up() -> None:
@@ -233,4 +249,6 @@ def warm_up() -> None:
     for code in range(len(LOSS_CODES)):
         r = objective(image, image, image, image, False, 0.0, 1.0, 1.0, code, 1.0)[1]
         normal_equations(r, np.zeros(1, dtype=np.int32), np.zeros((8, 1), dtype=np.float32), np.eye(8), 1.0, code, 1.0)
-    lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8))
+        evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
+                 np.zeros((8, 1), dtype=np.float32), np.eye(8), code, 1.0)
+    lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))

@@ -76,6 +76,21 @@ def test_normal_equations_are_the_weighted_least_squares_ones(loss: str) -> None
     assert np.array_equal(A, A.T)
 
 
+def test_evaluate_is_the_objective_and_its_normal_equations() -> None:
+    warped, image, fg, region = _images()
+    n = 30
+    index = RNG.choice(H_ * W_, n, replace=False).astype(np.int32)
+    sdT = RNG.standard_normal((8, n)).astype(np.float32)
+    hessian = sdT.astype(np.float64) @ sdT.T.astype(np.float64)
+    args = (warped, image, fg, region, True, 0.3, 2.0, 0.05)
+    for code in range(len(kernels.LOSS_CODES)):
+        total, r, gain = kernels.objective(*args, code, 0.05)
+        A, b = kernels.normal_equations(r, index, sdT, hessian, gain, code, 0.05)
+        fused = kernels.evaluate(*args, index, sdT, hessian, code, 0.05)
+        assert fused[0] == total and fused[1] == gain
+        assert np.array_equal(fused[2], A) and np.array_equal(fused[3], b)
+
+
 def test_lm_step_solves_the_damped_system_and_composes_the_inverse_update() -> None:
     M = RNG.standard_normal((8, 8))
     A = M @ M.T + 8 * np.eye(8)
@@ -83,21 +98,25 @@ def test_lm_step_solves_the_damped_system_and_composes_the_inverse_update() -> N
     H = np.array([[1.0, 0.1, 0.2], [0.05, 0.9, -0.1], [0.01, 0.02, 1.0]])
     corner_J = RNG.standard_normal((8, 8))
     lam = 0.1
-    ok, candidate, step = kernels.lm_step(A, b, lam, H, corner_J)
+    pixel_H_norm = np.array([[2.0, 0.0, 3.0], [0.0, 2.0, 3.0], [0.0, 0.0, 1.0]])
+    norm_H_pixel = np.linalg.inv(pixel_H_norm)
+    ok, candidate, M, step = kernels.lm_step(A, b, lam, H, corner_J, pixel_H_norm, norm_H_pixel)
     dp = np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * np.eye(8), b)
     update = np.eye(3) + np.append(dp, 0.0).reshape(3, 3)
     expected = H @ np.linalg.inv(update)
     assert ok
     np.testing.assert_allclose(candidate, expected / expected[2, 2], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(M, pixel_H_norm @ candidate @ norm_H_pixel, rtol=1e-12)
     motion = (dp @ corner_J).reshape(4, 2)
     assert step == pytest.approx(np.linalg.norm(motion, axis=1).max(), rel=1e-10)
     # a zero step is the identity update; a singular system falls back to the pseudo-inverse
-    assert np.allclose(kernels.lm_step(A, np.zeros(8), lam, H, corner_J)[1], H / H[2, 2])
+    eye = np.eye(3)
+    assert np.allclose(kernels.lm_step(A, np.zeros(8), lam, H, corner_J, eye, eye)[1], H / H[2, 2])
     singular = np.zeros((8, 8))
     singular[0, 0] = 1.0
-    ok, candidate, _ = kernels.lm_step(singular, np.eye(8)[0], 0.0, np.eye(3), corner_J)
+    ok, candidate, _, _ = kernels.lm_step(singular, np.eye(8)[0], 0.0, eye, corner_J, eye, eye)
     assert ok and np.isfinite(candidate).all()
-    assert not kernels.lm_step(A, np.full(8, np.nan), lam, H, corner_J)[0]
+    assert not kernels.lm_step(A, np.full(8, np.nan), lam, H, corner_J, eye, eye)[0]
 
 
 def test_luminance_and_foreground_std_match_opencv() -> None:
