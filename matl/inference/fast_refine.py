@@ -37,9 +37,12 @@ few hundred microseconds on one CPU core:
   start's; a query whose loss did not decrease, or whose matrix is non-finite or ill-conditioned,
   keeps its start.
 
-Batch-1 latency is what matters (one camera crop at a time), so a query runs in NumPy and OpenCV
-(``cv2.warpPerspective`` of a small grayscale image costs microseconds, a torch op ~10 us of overhead);
-a batch is a loop over its queries. ``threads`` sets OpenCV's threads during the refinement.
+Batch-1 latency is what matters (one camera crop at a time), so a query never touches torch: the warps are
+OpenCV's (``cv2.warpPerspective`` of a small grayscale image costs microseconds, a torch op ~10 us of
+overhead) and the rest of an iteration is one or two calls of numba-compiled functions
+(:mod:`matl.inference.fast_refine_kernels`: the fit, the loss and the normal equations in one, the damped
+solve and the update in the other); a batch is a loop over its queries. ``threads`` sets OpenCV's threads
+during the refinement (null: OpenCV's own; changing them costs about 0.1 ms a call).
 """
 
 from __future__ import annotations
@@ -202,7 +205,7 @@ class FastRefiner:
         max_condition: a refined normalised matrix with a larger condition number is rejected.
         tolerance: a level ends once an accepted step moved no image corner by more than this many
             pixels of that level.
-        threads: OpenCV threads during the refinement (null: leave OpenCV's).
+        threads: OpenCV threads during the refinement (None: leave OpenCV's; setting them costs ~0.1 ms a call).
         blur: std in px of a Gaussian applied to query and anchor alike before the pyramid (0: none).
         start: where a refined recognizer (:class:`~matl.inference.refine.RefinedRecognizer`) starts:
             ``stn``, ``s()``'s pose, skipping a model's learned alignment stage (``model.align``: the
