@@ -141,9 +141,11 @@ class OnnxRuntimeQueryPath:
 
         options = ort.SessionOptions()
         options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
-        # idle pool threads sleep at once instead of spinning: the refinement and OpenCV run between the calls,
-        # and a spinning thread takes a core from them (2 threads on 2 cores: a refined query 2x slower)
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # pool threads spin while a call runs (a sleeping thread's wake-up costs more than a small convolution) and
+        # stop when it returns: the refinement and OpenCV run between the calls, and a thread still spinning takes a
+        # core from them (2 threads on 2 cores: a refined query 2x slower)
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1")
+        options.add_session_config_entry("session.force_spinning_stop", "1")
         return tuple(ort.InferenceSession(g, options, providers=["CPUExecutionProvider"]) for g in graphs)
 
     def sessions(self) -> tuple[Any, Any] | None:
