@@ -189,6 +189,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     onnx = measure_onnx(model, gallery, queries, warmup, counts, device)  # with onnxruntime installed
     query_ms.update(onnx.pop("query_ms"))
     breakdown: dict[str, Any] = {}
+    refine_by_threads: dict[str, float] = {}
+    refine_threads = None
     refined = refined_int8 = None
     if options.refine:
         refiner = instantiate_node(cfg.refiner, "refiner")
@@ -197,8 +199,12 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         notes["refine_templates_s"] = f"{time.perf_counter() - start:.3f}"
         if getattr(refined, "templates", None) is not None and hasattr(refined.templates, "nbytes"):
             notes["refine_templates_mb"] = f"{refined.templates.nbytes / 1e6:.1f}"
-        query_ms["matl_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)  # matl's
-        breakdown = measure_breakdown(model, recognizer, refined, queries, warmup, threads, device)
+        # timed at every thread count like each method, kept at its fastest (the refinement runs on one core: its
+        # fastest count need not be the networks')
+        refine_by_threads = {str(n): median_query_ms(_synced(refined, device), queries, warmup, n) for n in counts}
+        refine_threads = int(min(refine_by_threads, key=lambda n: refine_by_threads[n]))
+        query_ms["matl_refine"] = refine_by_threads[str(refine_threads)]
+        breakdown = measure_breakdown(model, recognizer, refined, queries, warmup, refine_threads, device)
         if int8.get("recognizer") is not None:  # quantize=int8: the int8 query path, refined the same way
             refined_int8 = RefinedRecognizer(int8["recognizer"], refiner, templates=refined.templates)
             query_ms["matl_int8_refine"] = median_query_ms(_synced(refined_int8, device), queries, warmup,
@@ -246,10 +252,12 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "baseline_index_seconds": index_s,
         "same_queries": "the first queries+warmup test queries of data (seed) for every method",
         "timed_region": "one recognizer (or baseline) call per query, wall clock: networks, gallery search, pose",
-        "threads": "each method timed at every thread count in matl_ms_by_threads / sift_ms_by_threads (torch "
-                   "intra-op threads; OpenCV's too for SIFT); query_ms holds each method at its fastest",
-        "matl_threads": threads, "sift_threads": sift_threads,
-        "matl_ms_by_threads": by_threads, "sift_ms_by_threads": sift_by_threads,
+        "threads": "each method timed at every thread count in matl_ms_by_threads / matl_refine_ms_by_threads / "
+                   "sift_ms_by_threads (torch intra-op threads; OpenCV's too for SIFT); query_ms holds each method at "
+                   "its fastest",
+        "matl_threads": threads, "matl_refine_threads": refine_threads, "sift_threads": sift_threads,
+        "matl_ms_by_threads": by_threads, "matl_refine_ms_by_threads": refine_by_threads,
+        "sift_ms_by_threads": sift_by_threads,
         "matl_path": _query_path(recognizer, queries[:1]),
         "matl_align": "the alignment stage runs in query_ms.matl (after the search)" if getattr(
             recognizer, "align", None) is not None else None,
@@ -278,8 +286,9 @@ def measure_torch_runtime(recognizer: Any, refined: Any, queries: torch.Tensor, 
         by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
         threads = int(min(by_threads, key=lambda n: by_threads[n]))
         query_ms = {"matl_torch": by_threads[str(threads)]}
-        if refined is not None:
-            query_ms["matl_torch_refine"] = median_query_ms(_synced(refined, device), queries, warmup, threads)
+        if refined is not None:  # at every thread count, kept at its fastest (as matl_refine)
+            query_ms["matl_torch_refine"] = min(median_query_ms(_synced(refined, device), queries, warmup, n)
+                                                for n in counts)
     finally:
         recognizer.onnx = path
     return {"query_ms": query_ms, "matl_torch_ms_by_threads": by_threads, "matl_torch_threads": threads}
@@ -320,7 +329,7 @@ def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Cal
 def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.Tensor, warmup: int,
                       threads: int, device: torch.device) -> dict[str, Any]:
     """Where a refined MATL query's milliseconds go: the median over the same single queries of each part,
-    timed alone at MATL's thread count (so the parts need not add up exactly to ``query_ms.matl_refine``).
+    timed alone at the refined query's thread count (so the parts need not add up exactly to ``query_ms.matl_refine``).
 
     ``networks_ms``: ``c(s(q))`` by the recognizer's own path (onnxruntime with ``runtime=onnxruntime``, else the
     compiled graph when it applies);
@@ -780,7 +789,8 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
                   f"runtime={t.get('runtime')}" + (f" (fallback: {t['runtime_fallback']})"
                                                    if t.get("runtime_fallback") else ""))
     if "matl_refine" in q:
-        table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")), f"+{_fmt(results.get('refine_added_ms'))} ms")
+        table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")),
+                      f"+{_fmt(results.get('refine_added_ms'))} ms; {t.get('matl_refine_threads')} thread(s)")
         table.add_row("speedup_vs_sift_refine", _fmt(results.get("speedup_vs_sift_refine"), 1),
                       "sift_ransac / matl_refine")
     for name in ("matl_torch", "matl_torch_refine"):
