@@ -50,6 +50,38 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
 
 
 @torch.no_grad()
+def interleaved_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any], int | None]], queries: torch.Tensor,
+                         warmup: int = 5) -> dict[str, float]:
+    """Median milliseconds of each method on one query at a time, the methods taking turns on every query.
+
+    :func:`median_query_ms` times one method over all queries, then the next: on a shared machine whose speed
+    drifts over tens of seconds, two methods timed a minute apart can be slowed differently. Here every query is
+    answered by each method in turn (the order rotating from query to query), so a slow phase slows them alike
+    and their ratio holds.
+
+    Args:
+        methods: name -> ``(predict, threads)``: the callable (as for :func:`median_query_ms`) and torch's
+            intra-op threads during its calls (None: leave them; set outside the timed region).
+        queries: ``(Q, 3, H, W)``, the first ``warmup`` answered untimed.
+    Returns:
+        name -> median milliseconds.
+    """
+    names = list(methods)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for i in range(len(queries)):
+        turn = i % len(names)
+        for name in names[turn:] + names[:turn]:
+            predict, threads = methods[name]
+            with torch_threads(threads):
+                start = time.perf_counter()
+                predict(queries[i:i + 1])
+                elapsed = (time.perf_counter() - start) * 1000.0
+            if i >= warmup:
+                times[name].append(elapsed)
+    return {name: float(torch.tensor(t).median()) if t else float("nan") for name, t in times.items()}
+
+
+@torch.no_grad()
 def batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, batch: int,
                    warmup: int = 1, threads: int | None = None) -> float:
     """Milliseconds *per query* of ``predict`` on consecutive batches of ``batch`` queries (the crops of one
