@@ -27,7 +27,7 @@ from matl.utils.config import validate_config
 from matl.utils.errors import CONF_DIR, MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
-from matl.utils.timing import batch_query_ms, interleaved_query_ms, median_query_ms
+from matl.utils.timing import alternating_query_ms, batch_query_ms, median_query_ms
 
 # matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
 
@@ -57,7 +57,7 @@ def bench_options(cfg: DictConfig) -> DictConfig:
     options = cfg.bench
     if options.get("quick"):
         options = OmegaConf.merge(options, cfg.get("bench_quick") or {})
-    for key in ("train_steps", "queries", "scaling_queries", "batch_count"):
+    for key in ("train_steps", "queries", "scaling_queries", "batch_count", "rounds"):
         if not isinstance(options[key], int) or options[key] < 1:
             raise MatlError(f"bench.{key}={options[key]} is invalid: use an integer >= 1")
     for key in ("train_warmup", "query_warmup", "scaling_warmup", "render_objects", "batch"):
@@ -234,14 +234,14 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
             sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
     sift_threads = int(min(sift_by_threads, key=lambda n: sift_by_threads[n]))
     query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
-    # the headline numbers again, the methods taking turns query by query at their fastest thread counts (OpenCV's
-    # at SIFT's): the ratios of query_ms then do not depend on how the shared machine's speed drifted between the
-    # passes above (those stay in *_ms_by_threads)
+    # the headline numbers again, the methods alternating in bench.rounds rounds at their fastest thread counts
+    # (OpenCV's at SIFT's): the ratios of query_ms then do not depend on how the shared machine's speed drifted
+    # between the passes above (those stay in *_ms_by_threads)
     turns = {"matl": (_synced(recognizer, device), threads), "sift_ransac": (lambda x: baseline(x.cpu()), sift_threads)}
     if refined is not None:
         turns["matl_refine"] = (_synced(refined, device), refine_threads)
     with opencv_threads(sift_threads):
-        query_ms.update(interleaved_query_ms(turns, queries, warmup))
+        query_ms.update(alternating_query_ms(turns, queries, warmup, int(options.rounds)))
     extra = measure_extra_baselines(cfg, options, gallery, cpu_queries, warmup, counts)  # bench.baselines
     query_ms.update(extra.pop("query_ms"))
     batched: dict[str, Any] = {}
@@ -253,8 +253,9 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
 
     timing = {
         "queries": count, "warmup": warmup,
-        "statistic": "median over single-query calls (batch of 1); matl, matl_refine and sift_ransac from one pass in "
-                     "which they take turns query by query, each at its fastest thread count",
+        "statistic": "median over single-query calls (batch of 1); matl, matl_refine and sift_ransac over bench.rounds "
+                     "rounds in which they alternate, each at its fastest thread count",
+        "rounds": int(options.rounds),
         "gallery_anchors": len(gallery), "gallery_planes": int(gallery.plane_index.max()) + 1,
         "N": gallery.num_anchors, "image_size": gallery.image_size, "weights": weights,
         "baseline": baseline_name, "baseline_options": {k: v for k, v in OmegaConf.to_container(

@@ -50,34 +50,36 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
 
 
 @torch.no_grad()
-def interleaved_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any], int | None]], queries: torch.Tensor,
-                         warmup: int = 5) -> dict[str, float]:
-    """Median milliseconds of each method on one query at a time, the methods taking turns on every query.
+def alternating_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any], int | None]], queries: torch.Tensor,
+                         warmup: int = 5, rounds: int = 3) -> dict[str, float]:
+    """Median milliseconds of each method on one query at a time, the methods alternating in rounds.
 
-    :func:`median_query_ms` times one method over all queries, then the next: on a shared machine whose speed
-    drifts over tens of seconds, two methods timed a minute apart can be slowed differently. Here every query is
-    answered by each method in turn (the order rotating from query to query), so a slow phase slows them alike
-    and their ratio holds.
+    :func:`median_query_ms` times one method, then the next: on a shared machine whose speed drifts over tens of
+    seconds, two methods timed a minute apart can be slowed differently. Here each of ``rounds`` rounds times every
+    method on all the queries (the first ``warmup`` untimed), the methods' order rotating from round to round, and
+    each method's median is over all its rounds: a slow phase falls on every method alike, so their ratio holds.
+    A method keeps the machine for a whole pass over the queries (its caches its own, as in use); taking turns
+    query by query would time each method right after another's working set.
 
     Args:
         methods: name -> ``(predict, threads)``: the callable (as for :func:`median_query_ms`) and torch's
-            intra-op threads during its calls (None: leave them; set outside the timed region).
-        queries: ``(Q, 3, H, W)``, the first ``warmup`` answered untimed.
+            intra-op threads during its calls (None: leave them).
+        queries: ``(Q, 3, H, W)``.
     Returns:
         name -> median milliseconds.
     """
     names = list(methods)
     times: dict[str, list[float]] = {name: [] for name in names}
-    for i in range(len(queries)):
-        turn = i % len(names)
+    for r in range(int(rounds)):
+        turn = r % len(names)
         for name in names[turn:] + names[:turn]:
             predict, threads = methods[name]
             with torch_threads(threads):
-                start = time.perf_counter()
-                predict(queries[i:i + 1])
-                elapsed = (time.perf_counter() - start) * 1000.0
-            if i >= warmup:
-                times[name].append(elapsed)
+                for i in range(len(queries)):
+                    start = time.perf_counter()
+                    predict(queries[i:i + 1])
+                    if i >= warmup:
+                        times[name].append((time.perf_counter() - start) * 1000.0)
     return {name: float(torch.tensor(t).median()) if t else float("nan") for name, t in times.items()}
 
 
