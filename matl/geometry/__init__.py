@@ -25,7 +25,13 @@ from matl.geometry.homography import (
     transfer_points,
 )
 from matl.geometry.sampler import HomographySampler
-from matl.geometry.warp import normalised_grid, sample_by_normalised, sample_by_normalised_kornia, warp_image
+from matl.geometry.warp import (
+    normalised_grid,
+    sample_by_normalised,
+    sample_by_normalised_kornia,
+    sample_by_pixels,
+    warp_image,
+)
 
 __all__ = [
     "HomographySampler",
@@ -47,6 +53,7 @@ __all__ = [
     "rescale_homography",
     "sample_by_normalised",
     "sample_by_normalised_kornia",
+    "sample_by_pixels",
     "scale_to_unit",
     "transfer_points",
     "warp_image",

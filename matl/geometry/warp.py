@@ -22,12 +22,18 @@ is left undivided (kornia's rule). There are three ways in:
   ``warp_perspective``, which inverts it): the data pipeline's warps (anchors, positives,
   negatives, test queries) and the symmetric appearance loss. Also part of the training path,
   so also kornia's arithmetic.
+
+For one NumPy image at inference, :func:`sample_by_pixels` is the same sampling by a *pixel* matrix
+``src_H_dst`` in OpenCV (``cv2.warpPerspective``, sample positions in 1/32 px steps): the onnxruntime query
+path's warps and the fast refiner's.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import homography_warp, warp_perspective
@@ -124,3 +130,12 @@ def warp_image(src: torch.Tensor, dst_H_src: torch.Tensor, size: Size | None = N
     check_homographies(dst_H_src, "dst_H_src")
     size = tuple(src.shape[-2:]) if size is None else size
     return warp_perspective(src, dst_H_src.to(src.dtype), size, align_corners=True)
+
+
+def sample_by_pixels(image: np.ndarray, src_H_dst: np.ndarray, size: Size) -> np.ndarray:
+    """``out(x) = image(src_H_dst @ x)`` for the pixel centres ``x`` of an output of ``size`` ``(h, w)``: bilinear,
+    zeros outside, in OpenCV (``cv2.warpPerspective`` with ``WARP_INVERSE_MAP``). ``image`` is ``(H, W)`` or
+    ``(H, W, C)`` NumPy, ``src_H_dst`` ``(3, 3)`` float64."""
+    return cv2.warpPerspective(image, src_H_dst, (int(size[1]), int(size[0])),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0)

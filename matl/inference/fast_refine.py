@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 import torch
 
-from matl.geometry import degenerate_matrix
+from matl.geometry import degenerate_matrix, sample_by_pixels
 from matl.inference import fast_refine_kernels as kernels
 from matl.inference.refine import RefineResult
 from matl.utils.errors import MatlError
@@ -69,7 +69,6 @@ REGIONS = ("frame", "foreground", "auto")
 STARTS = ("stn", "align")
 _FOREGROUND = 1e-3  # an anchor pixel brighter than this in any channel is foreground (backgrounds are 0)
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as PhotometricRefiner
-_WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 #: the normalised image corners, homogeneous ``(4, 3)``
 _CORNERS = np.array([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
 
@@ -106,17 +105,14 @@ class AnchorLevel:
     hessian: np.ndarray
     norm_H_pixel: np.ndarray
     pixel_H_norm: np.ndarray
-    #: derived once (not arguments): flat views of ``image`` and ``fg``, ``1 / var``, ``1 / count``, and
+    #: derived once (not arguments): ``1 / var``, ``1 / count``, and
     #: ``corner_J`` ``(8, 8)``: ``dp @ corner_J`` is the motion of the 4 corners in this level's pixels
-    flat_image: np.ndarray = field(init=False, repr=False)
-    flat_fg: np.ndarray = field(init=False, repr=False)
     inv_var: float = field(init=False, repr=False)
     inv_count: float = field(init=False, repr=False)
     corner_J: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         h, w = self.size
-        self.flat_image, self.flat_fg = self.image.ravel(), self.fg.ravel()
         self.inv_var = 1.0 / max(self.var, 1e-12)
         self.inv_count = 1.0 / max(self.count, 1.0)
         self.corner_J = _CORNER_J * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)
@@ -358,8 +354,7 @@ class FastRefiner:
         """At the pose whose matrix in the level's pixels is ``M`` (anchor px -> query px): the loss (a mean over the
         region, in units of ``scale``), the gain, the Gauss-Newton system ``A (8, 8)``, ``b (8,)`` there and the
         query warped into the anchor frame ``(h, w)``."""
-        warped = cv2.warpPerspective(query, M, anchor.size[::-1], flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT,
-                                     borderValue=0)
+        warped = sample_by_pixels(query, M, anchor.size)
         region = anchor.region if anchor.region is not None else anchor.fg
         total, gain, A, b = kernels.evaluate(warped, anchor.image, anchor.fg, region, anchor.region is not None,
                                              anchor.mean, anchor.inv_var, anchor.inv_count, anchor.index, anchor.sdT,
@@ -411,9 +406,7 @@ class FastRefiner:
         normalised pose ``H`` puts in the anchor frame farther than ``auto_band`` px from the anchor's foreground, as a
         fraction of the foreground's area (``warped``: ``query`` already warped into the anchor frame by ``H``)."""
         if warped is None:
-            M = full.pixel_H_norm @ H @ full.norm_H_pixel
-            warped = cv2.warpPerspective(query, M, full.size[::-1], flags=_WARP_FLAGS,
-                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            warped = sample_by_pixels(query, full.pixel_H_norm @ H @ full.norm_H_pixel, full.size)
         seen = cv2.countNonZero(cv2.bitwise_and((warped > self.auto_level).view(np.uint8), outside))
         return seen / max(full.count, 1.0)
 

@@ -246,9 +246,7 @@ def warm_up() -> None:
     image = np.zeros((4, 4), dtype=np.float32)
     for channels in (1, 3):
         luminance(np.zeros((channels, 4, 4), dtype=np.float32), np.ones(3, dtype=np.float32), 0.0)
-    for code in range(len(LOSS_CODES)):
-        r = objective(image, image, image, image, False, 0.0, 1.0, 1.0, code, 1.0)[1]
-        normal_equations(r, np.zeros(1, dtype=np.int32), np.zeros((8, 1), dtype=np.float32), np.eye(8), 1.0, code, 1.0)
-        evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
-                 np.zeros((8, 1), dtype=np.float32), np.eye(8), code, 1.0)
+    # evaluate compiles objective and normal_equations for the same argument types (loss_code is one int type)
+    evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
+             np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
     lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))

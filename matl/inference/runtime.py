@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from matl.geometry import degenerate_matrix, normalisation_matrices
+from matl.geometry import degenerate_matrix, normalisation_matrices, sample_by_pixels
 from matl.inference.recognizer import MODAL_LAYERS, weights_key
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
@@ -46,7 +46,6 @@ log = logging.getLogger(__name__)
 RUNTIMES = ("torch", "onnxruntime")
 #: largest difference accepted between a network in onnxruntime and the torch module when the path is built
 TOLERANCE = 1e-4
-_WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
 
 class _ChannelsLast(nn.Module):
@@ -173,9 +172,8 @@ class OnnxRuntimeQueryPath:
     # ------------------------------------------------------------------------------ queries
     def _warp(self, image: np.ndarray, query_H_anchor_norm: np.ndarray) -> np.ndarray:
         """``out(x) = image(query_H_anchor_norm @ x)`` of a ``(S, S, 3)`` image, bilinear, zeros outside."""
-        S = self.image_size
         M = self._pixel_H_norm @ query_H_anchor_norm @ self._norm_H_pixel
-        return cv2.warpPerspective(image, M, (S, S), flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return sample_by_pixels(image, M, (self.image_size, self.image_size))
 
     def _guard(self, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`matl.geometry.guard_homographies` of ``(B, 3, 3)`` float64 matrices."""

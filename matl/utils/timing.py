@@ -39,13 +39,22 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
             few small operations: on a small CPU shared with other work one thread is both faster and
             far steadier than several, whose every operation waits for the slowest core (docs/speed.md).
     """
-    times = []
     with torch_threads(threads):
-        for i in range(len(queries)):
-            start = time.perf_counter()
-            predict(queries[i:i + 1])
-            if i >= warmup:
-                times.append((time.perf_counter() - start) * 1000.0)
+        return _median(_single_query_ms(predict, queries, warmup))
+
+
+def _single_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, warmup: int) -> list[float]:
+    """Milliseconds of each ``predict`` call on one query at a time, the first ``warmup`` calls left out."""
+    times = []
+    for i in range(len(queries)):
+        start = time.perf_counter()
+        predict(queries[i:i + 1])
+        if i >= warmup:
+            times.append((time.perf_counter() - start) * 1000.0)
+    return times
+
+
+def _median(times: list[float]) -> float:
     return float(torch.tensor(times).median()) if times else float("nan")
 
 
@@ -75,12 +84,8 @@ def alternating_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any],
         for name in names[turn:] + names[:turn]:
             predict, threads = methods[name]
             with torch_threads(threads):
-                for i in range(len(queries)):
-                    start = time.perf_counter()
-                    predict(queries[i:i + 1])
-                    if i >= warmup:
-                        times[name].append((time.perf_counter() - start) * 1000.0)
-    return {name: float(torch.tensor(t).median()) if t else float("nan") for name, t in times.items()}
+                times[name] += _single_query_ms(predict, queries, warmup)
+    return {name: _median(t) for name, t in times.items()}
 
 
 @torch.no_grad()
