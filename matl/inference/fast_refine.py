@@ -177,7 +177,8 @@ def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
 def _luminance(images: torch.Tensor) -> list[tuple[np.ndarray, float]]:
     """``(B, 3, H, W)`` (or ``(B, 1, H, W)``) -> per image, its ``(H, W)`` float32 luminance and the std of its
     foreground (pixels above ``_FOREGROUND``)."""
-    array = images.detach().float().cpu().numpy()
+    array = images.detach()
+    array = (array if array.dtype == torch.float32 and array.device.type == "cpu" else array.float().cpu()).numpy()
     return [kernels.luminance(image, _LUMA, _FOREGROUND) for image in array]
 
 
@@ -361,6 +362,14 @@ class FastRefiner:
                                              anchor.hessian, self._loss_code, self.delta * scale)
         return total / (anchor.total * scale * scale), gain, A, b, warped
 
+    def _loss(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float) -> float:
+        """:meth:`_evaluate`'s loss alone (no normal equations): the objective at the pose whose matrix is ``M``."""
+        warped = sample_by_pixels(query, M, anchor.size)
+        region = anchor.region if anchor.region is not None else anchor.fg
+        total = kernels.objective(warped, anchor.image, anchor.fg, region, anchor.region is not None, anchor.mean,
+                                  anchor.inv_var, anchor.inv_count, self._loss_code, self.delta * scale)[0]
+        return total / (anchor.total * scale * scale)
+
     def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
                ) -> tuple[np.ndarray, float, np.ndarray]:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose, its loss and its warped query."""
@@ -427,7 +436,7 @@ class FastRefiner:
         ``timing=True`` keeps the milliseconds of each level for :attr:`last_level_ms` (finest first).
         """
         H0 = np.asarray(query_H_anchor, dtype=np.float64)
-        if not np.all(np.isfinite(H0)) or abs(H0[2, 2]) < 1e-12:
+        if not math.isfinite(H0.sum()) or abs(H0[2, 2]) < 1e-12:  # a NaN or infinite entry makes the sum one
             return H0, math.inf, math.inf, False
         full = anchor[0]
         H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
@@ -443,7 +452,7 @@ class FastRefiner:
                 raw, full, outside, H, warped if raw is query else None) > self.auto_leak:
             anchor, full = foreground, foreground[0]
             H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
-        loss_before = self._evaluate(query, full, H0, scale)[0]  # the start's matrix in full-size pixels is H0
+        loss_before = self._loss(query, full, H0, scale)  # the start's matrix in full-size pixels is H0
         accepted = loss < loss_before and not degenerate_matrix(H, self.max_condition)
         if not accepted:
             return H0, loss_before, loss_before, False
@@ -480,7 +489,7 @@ class FastRefiner:
         index = anchor_index.detach().cpu().numpy()
         out = np.empty((B, 3, 3))
         before, after, accepted = np.empty(B), np.empty(B), np.zeros(B, dtype=bool)
-        previous = cv2.getNumThreads()
+        previous = cv2.getNumThreads() if self.threads is not None else None
         if self.threads is not None and self.threads != previous:
             cv2.setNumThreads(self.threads)
         try:
@@ -494,9 +503,9 @@ class FastRefiner:
         finally:
             if self.threads is not None and self.threads != previous:
                 cv2.setNumThreads(previous)
+        result = (torch.from_numpy(out), torch.from_numpy(before), torch.from_numpy(after), torch.from_numpy(accepted))
         device = query_H_anchor.device
-        return RefineResult(torch.from_numpy(out).to(device), torch.from_numpy(before).to(device),
-                            torch.from_numpy(after).to(device), torch.from_numpy(accepted).to(device))
+        return RefineResult(*(result if device.type == "cpu" else (t.to(device) for t in result)))
 
     def refine_images(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor) -> RefineResult:
         """The same refinement with each query's anchor image ``(B, 3, H, W)`` given (their data computed here)."""

@@ -40,11 +40,17 @@ def luminance(image: np.ndarray, weights: np.ndarray, level: float) -> tuple[np.
         ``(gray (h, w) float32, std)``: the population std of ``gray`` over its pixels above ``level`` (0 if none).
     """
     _, h, w = image.shape
-    gray = image[0].copy() if image.shape[0] == 1 else (
-        weights[0] * image[0] + weights[1] * image[1] + weights[2] * image[2])
+    gray = np.empty((h, w), dtype=np.float32)
     flat = gray.ravel()
     count = 0.0
     total = 0.0
+    if image.shape[0] == 1:
+        flat[:] = image[0].ravel()
+    else:
+        r, g, b = image[0].ravel(), image[1].ravel(), image[2].ravel()
+        w0, w1, w2 = weights[0], weights[1], weights[2]
+        for i in range(h * w):
+            flat[i] = w0 * r[i] + w1 * g[i] + w2 * b[i]
     for i in range(h * w):
         if flat[i] > level:
             count += 1.0
@@ -246,7 +252,9 @@ def warm_up() -> None:
     image = np.zeros((4, 4), dtype=np.float32)
     for channels in (1, 3):
         luminance(np.zeros((channels, 4, 4), dtype=np.float32), np.ones(3, dtype=np.float32), 0.0)
-    # evaluate compiles objective and normal_equations for the same argument types (loss_code is one int type)
+    # evaluate compiles objective and normal_equations for the same argument types (loss_code is one int type);
+    # objective is also called on its own (the start's loss)
     evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
              np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
+    objective(image, image, image, image, False, 0.0, 1.0, 1.0, 1, 1.0)
     lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))

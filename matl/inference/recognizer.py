@@ -330,7 +330,9 @@ class Recognizer(nn.Module):
         return features, query_H_anchor, degenerate, warped
 
     @torch.no_grad()
-    def forward(self, queries: torch.Tensor) -> Prediction:
+    def forward(self, queries: torch.Tensor, pose: bool = True) -> Prediction:
+        """Class and pose of ``queries`` ``(B, 3, S, S)``; ``pose=False`` leaves ``query_H_canon`` None (a caller that
+        replaces ``query_H_anchor``, as :class:`~matl.inference.refine.RefinedRecognizer` does, composes it once)."""
         check_images(queries, "queries", (self.gallery.image_size, self.gallery.image_size))
         g = self.gallery
         features, query_H_anchor, degenerate, warped = self.embed_queries(queries)
@@ -345,7 +347,7 @@ class Recognizer(nn.Module):
             aligned = self.align.infer(queries, g.images[index], query_H_anchor, warped)
             query_H_anchor = aligned.query_H_anchor
         query_H_canon = None
-        if query_H_anchor is not None:
+        if query_H_anchor is not None and pose:
             query_H_canon = compose_query_H_canon(query_H_anchor.double(), self._anchor_H_canon64()[index])
         return Prediction(index, g.object_index[index], g.plane_index[index], g.anchor_index[index], distance,
                           query_H_anchor, query_H_canon, warped, degenerate, features=features)

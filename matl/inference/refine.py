@@ -49,7 +49,7 @@ from matl.geometry import (
     pixel_to_normalised,
     sample_by_normalised,
 )
-from matl.inference.recognizer import Prediction
+from matl.inference.recognizer import Prediction, Recognizer
 
 __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
 
@@ -322,9 +322,12 @@ class RefinedRecognizer:
             templates = refiner.anchor_templates(self.gallery.images)  # once per gallery
         self.templates = templates  # per-anchor data of the inverse-compositional refiner (None: photometric)
         self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
+        # MATL's recognizer can leave its pose out (this call composes the refined one); others answer in full
+        self._pose_later = isinstance(recognizer, Recognizer)
+        self._canon: tuple[torch.Tensor, torch.Tensor] | None = None  # (gallery.anchor_H_canon, its float64 copy)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
-        if name in ("recognizer", "refiner", "gallery", "last", "templates"):
+        if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later", "_canon"):
             raise AttributeError(name)
         return getattr(self.recognizer, name)
 
@@ -335,14 +338,22 @@ class RefinedRecognizer:
         return getattr(self.refiner, "start", "align") == "stn" and getattr(self.recognizer, "align", None) is not None
 
     def _recognize(self, queries: torch.Tensor) -> Prediction:
+        call = (lambda q: self.recognizer(q, pose=False)) if self._pose_later else self.recognizer
         if not self.skips_align:
-            return self.recognizer(queries)
+            return call(queries)
         align = self.recognizer.align
         self.recognizer.align = None  # restored below, whatever happens
         try:
-            return self.recognizer(queries)
+            return call(queries)
         finally:
             self.recognizer.align = align
+
+    def _anchor_H_canon64(self) -> torch.Tensor:
+        """``gallery.anchor_H_canon`` in float64, converted once (again only if the gallery's tensor changes)."""
+        source = self.gallery.anchor_H_canon
+        if self._canon is None or self._canon[0] is not source:
+            self._canon = (source, source.double())
+        return self._canon[1]
 
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor) -> Prediction:
@@ -350,20 +361,25 @@ class RefinedRecognizer:
         if pred.query_H_anchor is None:
             return pred
         g = self.gallery
-        index = pred.gallery_index.to(g.images.device)
-        found = index >= 0
-        safe = index.clamp_min(0)
-        start = pred.query_H_anchor.double().to(g.images.device)
+        device = g.images.device
+        index = pred.gallery_index.to(device)
+        every = len(index) == 0 or int(index.min()) >= 0  # the usual case: no query is left without an anchor
+        safe = index if every else index.clamp_min(0)
+        start = pred.query_H_anchor.to(device, torch.float64)
         if self.templates is not None:
-            result = self.refiner(queries.to(g.images.device), safe, start, self.templates)
+            result = self.refiner(queries.to(device), safe, start, self.templates)
         else:
-            result = self.refiner(queries.to(g.images.device), g.images[safe], start)
+            result = self.refiner(queries.to(device), g.images[safe], start)
         self.last = result
-        every = bool(found.all())  # the usual case: no query is left without an anchor
-        H = result.query_H_anchor if every else torch.where(found[:, None, None], result.query_H_anchor, start)
-        pose = compose_query_H_canon(H, g.anchor_H_canon[safe].double())
-        if not every:
-            old = pred.query_H_canon.double().to(pose.device) if pred.query_H_canon is not None else pose
-            pose = torch.where(found[:, None, None], pose, old)
+        canon = self._anchor_H_canon64()
+        if every:
+            H = result.query_H_anchor
+            pose = compose_query_H_canon(H, canon[safe])
+        else:  # a query without an anchor keeps the recognizer's answer
+            found = (index >= 0)[:, None, None]
+            H = torch.where(found, result.query_H_anchor, start)
+            old = pred.query_H_canon  # None when left out above: composed here, as the recognizer would have
+            old = compose_query_H_canon(start, canon[safe]) if old is None else old.double().to(device)
+            pose = torch.where(found, compose_query_H_canon(H, canon[safe]), old)
         device = pred.query_H_anchor.device
         return dataclasses.replace(pred, query_H_anchor=H.to(device), query_H_canon=pose.to(device))

@@ -177,7 +177,8 @@ class OnnxRuntimeQueryPath:
 
     def _guard(self, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`matl.geometry.guard_homographies` of ``(B, 3, 3)`` float64 matrices."""
-        bad = np.array([degenerate_matrix(h, float(self.stn.max_condition)) for h in H])
+        limit = float(self.stn.max_condition)
+        bad = np.array([degenerate_matrix(h, limit) for h in H])
         if bad.any():  # a kept matrix is finite
             H = np.where(bad[:, None, None], np.eye(3), H)
         return H, bad
@@ -191,19 +192,24 @@ class OnnxRuntimeQueryPath:
         regressor, embedding = sessions
         x = np.ascontiguousarray(queries.detach().numpy())
         images = [cv2.merge((q[0], q[1], q[2])) for q in x]  # channels-last, for OpenCV and the regressor graph
-        H = regressor.run(None, {"images": np.stack(images) if len(images) > 1 else images[0][None]})[0]
+        H = regressor.run(None, {"images": _batch(images)})[0]
         H = H.astype(np.float64)
         for _ in range(int(self.stn.iterations) - 1):
-            warped = np.stack([self._warp(image, h) for image, h in zip(images, H, strict=True)])
+            warped = _batch([self._warp(image, h) for image, h in zip(images, H, strict=True)])
             H = H @ regressor.run(None, {"images": warped})[0].astype(np.float64)
         H, bad = self._guard(H)
-        warped = np.stack([self._warp(image, h) for image, h in zip(images, H, strict=True)])
+        warped = _batch([self._warp(image, h) for image, h in zip(images, H, strict=True)])
         warped = np.ascontiguousarray(warped.transpose(0, 3, 1, 2))  # channels first, for c()
         features = embedding.run(None, {"images": warped})[0]
         pixel = self._pixel_H_norm @ H @ self._norm_H_pixel
         pixel = (pixel / pixel[:, 2:, 2:]).astype(np.float32)
         return (torch.from_numpy(features), torch.from_numpy(pixel), torch.from_numpy(bad),
                 torch.from_numpy(warped))
+
+
+def _batch(images: list[np.ndarray]) -> np.ndarray:
+    """``(B, ...)`` of ``B`` same-shaped arrays (one query: a view, no copy)."""
+    return images[0][None] if len(images) == 1 else np.stack(images)
 
 
 # ------------------------------------------------------------------------------ the config option

@@ -17,6 +17,7 @@ gallery features change (new products enrolled).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -117,6 +118,12 @@ def _nearest_numpy(queries: np.ndarray, gallery_T: np.ndarray, sq_norms: np.ndar
     d2 *= -2.0
     d2 += sq_norms
     d2 += np.einsum("qd,qd->q", queries, queries)[:, None]
+    if len(d2) == 1:  # one query (a camera crop at a time): the same answer in scalars
+        i = int(d2[0].argmin())
+        best = float(d2[0, i])
+        found = best < math.inf
+        return (torch.tensor([i if found else 0]),
+                torch.tensor([math.sqrt(max(best, 0.0)) if found else math.inf], dtype=torch.float32))
     index = d2.argmin(1)
     best = d2[np.arange(len(d2)), index]
     found = best < np.inf  # False for NaN (argmin stops at the first NaN) and inf

@@ -194,3 +194,42 @@ def test_refine_true_is_the_fast_refiner_with_the_config_defaults() -> None:
     configured = FastRefiner(**{k: v for k, v in OmegaConf.to_container(
         OmegaConf.load(CONF_DIR / "refiner" / "fast.yaml")).items() if k != "_target_"})
     assert default.options() == configured.options()
+
+
+class _OneMissing:
+    """A search whose first query finds nothing (an approximate index can come back empty: -1)."""
+
+    def __init__(self, search) -> None:
+        self.inner = search
+
+    def search(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        index, distance = self.inner.search(queries)
+        index = index.clone()
+        index[0] = -1
+        return index, distance
+
+
+def test_refined_matl_recognizer_composes_the_pose_once_and_an_unmatched_query_keeps_its_answer() -> None:
+    from matl.geometry import compose_query_H_canon
+    from matl.inference.recognizer import Recognizer
+    from tests.inference.test_query_graph import gallery, networks
+
+    feature_net, stn = networks()
+    g = gallery(feature_net)
+    recognizer = Recognizer(feature_net, stn, g)
+    queries = g.images[[1, 6, 11]]
+    assert recognizer(queries, pose=False).query_H_canon is None
+    plain = recognizer(queries)
+    refined = RefinedRecognizer(recognizer, FastRefiner(min_size=4))
+    out = refined(queries)
+    assert torch.equal(out.gallery_index, plain.gallery_index)
+    expected = compose_query_H_canon(out.query_H_anchor.double(), g.anchor_H_canon[out.gallery_index].double())
+    assert torch.allclose(out.query_H_canon.double(), expected, atol=1e-9)
+    # a query the search leaves without an anchor keeps the recognizer's own pose
+    recognizer.search = _OneMissing(recognizer.search)
+    missing = refined(queries)
+    assert int(missing.gallery_index[0]) == -1
+    assert torch.allclose(missing.query_H_anchor[0].double(), plain.query_H_anchor[0].double(), atol=1e-6)
+    assert torch.allclose(missing.query_H_canon[0].double(), compose_query_H_canon(
+        plain.query_H_anchor[:1].double(), g.anchor_H_canon[:1].double())[0], atol=1e-6)
+    assert torch.allclose(missing.query_H_canon[1:], out.query_H_canon[1:])
