@@ -202,7 +202,7 @@ def degenerate_matrix(H: np.ndarray, max_condition: float) -> bool:
     """:func:`degenerate_homographies`'s rule for one ``(3, 3)`` float64 NumPy matrix: non-finite, or
     ``sv_min * max_condition <= sv_max``. In OpenCV, a few microseconds (a single query's pose is checked
     without a torch op)."""
-    if not np.isfinite(H).all():
+    if not math.isfinite(H.sum()):  # a NaN or infinite entry makes the sum one
         return True
     sv = cv2.SVDecomp(H, flags=cv2.SVD_NO_UV)[0]  # (3, 1), descending
     return bool(sv[2, 0] * max_condition <= sv[0, 0])

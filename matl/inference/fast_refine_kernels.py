@@ -51,17 +51,16 @@ def luminance(image: np.ndarray, weights: np.ndarray, level: float) -> tuple[np.
         w0, w1, w2 = weights[0], weights[1], weights[2]
         for i in range(h * w):
             flat[i] = w0 * r[i] + w1 * g[i] + w2 * b[i]
-    for i in range(h * w):
-        if flat[i] > level:
-            count += 1.0
-            total += flat[i]
+    for i in range(h * w):  # without branches (a mask's edge is not predictable): 0 or 1 times each term
+        inside = np.float64(flat[i] > level)
+        count += inside
+        total += inside * flat[i]
     if count == 0.0:
         return gray, 0.0
     mean = total / count
     spread = 0.0
     for i in range(h * w):
-        if flat[i] > level:
-            spread += (flat[i] - mean) ** 2
+        spread += np.float64(flat[i] > level) * (flat[i] - mean) ** 2
     return gray, math.sqrt(spread / count)
 
 

@@ -122,8 +122,8 @@ def _nearest_numpy(queries: np.ndarray, gallery_T: np.ndarray, sq_norms: np.ndar
         i = int(d2[0].argmin())
         best = float(d2[0, i])
         found = best < math.inf
-        return (torch.tensor([i if found else 0]),
-                torch.tensor([math.sqrt(max(best, 0.0)) if found else math.inf], dtype=torch.float32))
+        return (torch.from_numpy(np.array([i if found else 0], dtype=np.int64)),
+                torch.from_numpy(np.array([math.sqrt(max(best, 0.0)) if found else math.inf], dtype=np.float32)))
     index = d2.argmin(1)
     best = d2[np.arange(len(d2)), index]
     found = best < np.inf  # False for NaN (argmin stops at the first NaN) and inf
