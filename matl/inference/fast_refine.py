@@ -416,8 +416,7 @@ class FastRefiner:
         fraction of the foreground's area (``warped``: ``query`` already warped into the anchor frame by ``H``)."""
         if warped is None:
             warped = sample_by_pixels(query, full.pixel_H_norm @ H @ full.norm_H_pixel, full.size)
-        seen = cv2.countNonZero(cv2.bitwise_and((warped > self.auto_level).view(np.uint8), outside))
-        return seen / max(full.count, 1.0)
+        return kernels.count_above(warped, outside, self.auto_level) / max(full.count, 1.0)
 
     def refine_one(self, query: np.ndarray, anchor: list[AnchorLevel], query_H_anchor: np.ndarray,
                    timing: bool = False, foreground: list[AnchorLevel] | None = None,

@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["LOSS_CODES", "evaluate", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
+__all__ = ["LOSS_CODES", "count_above", "evaluate", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
 
 #: the robust losses in the order of ``loss_code``
 LOSS_CODES = ("l2", "huber", "cauchy")
@@ -246,6 +246,16 @@ def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: n
     return True, candidate, pixel_H_norm @ candidate @ norm_H_pixel, step
 
 
+@njit(**_JIT)
+def count_above(image: np.ndarray, mask: np.ndarray, level: float) -> int:
+    """Pixels of ``image`` ``(h, w)`` float32 brighter than ``level`` where ``mask`` ``(h, w)`` uint8 is non-zero."""
+    flat, where = image.ravel(), mask.ravel()
+    count = 0
+    for i in range(flat.shape[0]):
+        count += (flat[i] > level) & (where[i] != 0)
+    return count
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the argument types the refiner passes."""
     image = np.zeros((4, 4), dtype=np.float32)
@@ -257,3 +267,4 @@ def warm_up() -> None:
              np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
     objective(image, image, image, image, False, 0.0, 1.0, 1.0, 1, 1.0)
     lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))
+    count_above(image, np.zeros((4, 4), dtype=np.uint8), 0.0)

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
+from numba import njit
 
 from matl.utils.errors import MatlError
 
@@ -97,12 +98,20 @@ class ExactSearch:
         # per-op cost (a single query's search is a handful of small ops)
         self._numpy = None
         if self.features.device.type == "cpu" and self.features.dtype == torch.float32 and len(features) <= chunk:
-            self._numpy = (self.features.detach().numpy().T, self.sq_norms.detach().numpy())
+            self._numpy = (self.features.detach().numpy(), self.sq_norms.detach().numpy())
+            if len(features):  # compiled (or loaded from numba's cache) here, not at the first query
+                _nearest_one(np.zeros(features.shape[1], np.float32), *(a[:1] for a in self._numpy))
 
     def search(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if (self._numpy is not None and len(queries) <= SMALL_BATCH and len(self.features)
                 and queries.device.type == "cpu" and queries.dtype == torch.float32):
-            return _nearest_numpy(queries.detach().numpy(), *self._numpy)
+            gallery, sq_norms = self._numpy
+            if len(queries) == 1:  # a camera crop at a time: one compiled pass (a handful of NumPy calls cost more)
+                i, best = _nearest_one(np.ascontiguousarray(queries.detach().numpy()[0]), gallery, sq_norms)
+                found = best < math.inf
+                return (torch.from_numpy(np.array([i if found else 0], dtype=np.int64)),
+                        torch.from_numpy(np.array([math.sqrt(max(best, 0.0)) if found else math.inf], np.float32)))
+            return _nearest_numpy(queries.detach().numpy(), gallery.T, sq_norms)
         return nearest(queries, self.features, self.chunk, self.sq_norms)
 
 
@@ -118,18 +127,35 @@ def _nearest_numpy(queries: np.ndarray, gallery_T: np.ndarray, sq_norms: np.ndar
     d2 *= -2.0
     d2 += sq_norms
     d2 += np.einsum("qd,qd->q", queries, queries)[:, None]
-    if len(d2) == 1:  # one query (a camera crop at a time): the same answer in scalars
-        i = int(d2[0].argmin())
-        best = float(d2[0, i])
-        found = best < math.inf
-        return (torch.from_numpy(np.array([i if found else 0], dtype=np.int64)),
-                torch.from_numpy(np.array([math.sqrt(max(best, 0.0)) if found else math.inf], dtype=np.float32)))
     index = d2.argmin(1)
     best = d2[np.arange(len(d2)), index]
     found = best < np.inf  # False for NaN (argmin stops at the first NaN) and inf
     index = np.where(found, index, 0)
     distance = np.sqrt(np.maximum(np.where(found, best, np.inf), 0.0))
     return torch.from_numpy(index.astype(np.int64)), torch.from_numpy(distance.astype(np.float32))
+
+
+@njit(cache=True, nogil=True, boundscheck=False, fastmath={"reassoc", "contract", "arcp", "nsz"})
+def _nearest_one(query: np.ndarray, gallery: np.ndarray, sq_norms: np.ndarray) -> tuple[int, float]:
+    """:func:`_nearest_numpy` for one ``(D,)`` float32 query against ``gallery`` ``(G, D)``: ``(index, squared
+    distance)`` of the nearest entry (the lowest index among ties), ``(0, inf)`` if a distance is NaN. The same
+    float32 sums in another order: distances agree to float32 rounding."""
+    qq = np.float32(0.0)
+    for d in range(query.shape[0]):
+        qq += query[d] * query[d]
+    best = np.inf
+    index = 0
+    for g in range(gallery.shape[0]):
+        row = gallery[g]
+        dot = np.float32(0.0)
+        for d in range(query.shape[0]):
+            dot += row[d] * query[d]
+        d2 = (np.float32(-2.0) * dot + sq_norms[g]) + qq
+        if d2 < best:
+            best, index = d2, g
+        elif not d2 >= best:  # NaN: as the batch path, no answer
+            return 0, np.inf
+    return index, best
 
 
 def require_faiss() -> Any:

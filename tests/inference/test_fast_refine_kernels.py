@@ -131,3 +131,12 @@ def test_luminance_and_foreground_std_match_opencv() -> None:
     one, std_one = kernels.luminance(rgb[:1], weights, 1e-3)
     assert np.array_equal(one, rgb[0]) and std_one > 0
     assert kernels.luminance(np.zeros((1, 3, 3), np.float32), weights, 1e-3)[1] == 0.0
+
+
+def test_count_above_counts_bright_pixels_inside_the_mask_as_opencv() -> None:
+    image = RNG.random((H_, W_), dtype=np.float32)
+    image[3, 4] = np.nan  # not brighter than anything
+    mask = (RNG.random((H_, W_)) > 0.5).astype(np.uint8) * 3  # any non-zero value is inside
+    expected = cv2.countNonZero(cv2.bitwise_and((image > 0.4).view(np.uint8), (mask > 0).view(np.uint8)))
+    assert kernels.count_above(image, mask, 0.4) == expected > 0
+    assert kernels.count_above(image, np.zeros_like(mask), 0.0) == 0

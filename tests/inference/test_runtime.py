@@ -125,3 +125,9 @@ def test_numpy_search_equals_torch_search() -> None:
         assert torch.allclose(distance, ref_distance, atol=5e-3, equal_nan=True)
     assert int(search.search(queries)[0][1]) == 3 and int(search.search(queries)[0][2]) == 0
     assert search.search(queries[2:3])[1].item() == float("inf")
+    # a gallery entry with a NaN leaves every query without an answer, one query at a time or in a batch
+    features[9] = float("nan")
+    broken = ExactSearch(features)
+    for q in (queries[:3], *queries[:3].split(1)):
+        index, distance = broken.search(q)
+        assert index.tolist() == [0] * len(q) and distance.isinf().all()
