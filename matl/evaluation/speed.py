@@ -14,7 +14,6 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -229,19 +228,17 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     index_s = time.perf_counter() - start
     cpu_queries = queries.cpu()
     sift_by_threads = {}
-    for n in counts:
-        with opencv_threads(n):  # torch's and OpenCV's threads alike
-            sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
+    for n in counts:  # torch's and OpenCV's threads alike, as every method's (matl.utils.timing.compute_threads)
+        sift_by_threads[str(n)] = median_query_ms(baseline, cpu_queries, warmup, n)
     sift_threads = int(min(sift_by_threads, key=lambda n: sift_by_threads[n]))
     query_ms["sift_ransac"] = sift_by_threads[str(sift_threads)]
-    # the headline numbers again, the methods alternating in bench.rounds rounds at their fastest thread counts
-    # (OpenCV's at SIFT's): the ratios of query_ms then do not depend on how the shared machine's speed drifted
-    # between the passes above (those stay in *_ms_by_threads)
+    # the headline numbers again, the methods alternating in bench.rounds rounds, each at its fastest thread count:
+    # the ratios of query_ms then do not depend on how the shared machine's speed drifted between the passes above
+    # (those stay in *_ms_by_threads)
     turns = {"matl": (_synced(recognizer, device), threads), "sift_ransac": (lambda x: baseline(x.cpu()), sift_threads)}
     if refined is not None:
         turns["matl_refine"] = (_synced(refined, device), refine_threads)
-    with opencv_threads(sift_threads):
-        query_ms.update(alternating_query_ms(turns, queries, warmup, int(options.rounds)))
+    query_ms.update(alternating_query_ms(turns, queries, warmup, int(options.rounds)))
     extra = measure_extra_baselines(cfg, options, gallery, cpu_queries, warmup, counts)  # bench.baselines
     query_ms.update(extra.pop("query_ms"))
     batched: dict[str, Any] = {}
@@ -264,8 +261,8 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
         "same_queries": "the first queries+warmup test queries of data (seed) for every method",
         "timed_region": "one recognizer (or baseline) call per query, wall clock: networks, gallery search, pose",
         "threads": "each method timed at every thread count in matl_ms_by_threads / matl_refine_ms_by_threads / "
-                   "sift_ms_by_threads (torch intra-op threads; OpenCV's too for SIFT); query_ms holds each method at "
-                   "its fastest",
+                   "sift_ms_by_threads (torch's intra-op threads and OpenCV's alike, for every method); query_ms holds "
+                   "each method at its fastest",
         "matl_threads": threads, "matl_refine_threads": refine_threads, "sift_threads": sift_threads,
         "matl_ms_by_threads": by_threads, "matl_refine_ms_by_threads": refine_by_threads,
         "sift_ms_by_threads": sift_by_threads,
@@ -323,8 +320,7 @@ def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Cal
         inputs = queries if name.startswith("matl") else queries.cpu()
         by_threads = {}
         for n in counts:
-            with opencv_threads(n):
-                by_threads[n] = batch_query_ms(predict, inputs, batch, 1, n)
+            by_threads[n] = batch_query_ms(predict, inputs, batch, 1, n)
         threads[name] = min(by_threads, key=lambda n: by_threads[n])
         ms[name] = by_threads[threads[name]]
     out: dict[str, Any] = {"query_ms_batch": ms, "batch_timing": {
@@ -350,7 +346,7 @@ def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.
     ``refiner.start=stn``); ``refine_ms``: the refinement alone from the pose it starts from, and
     ``refine_level_ms`` its median per pyramid level, finest first (``refiner=fast``).
     """
-    from matl.utils.timing import torch_threads
+    from matl.utils.timing import compute_threads
 
     parts: dict[str, list[float]] = {}
     levels: list[list[float]] = []
@@ -367,7 +363,7 @@ def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.
     g = recognizer.gallery
     stn, feature_net = getattr(model, "stn", None), getattr(model, "feature_net", None)
     align = getattr(recognizer, "align", None)
-    with torch.no_grad(), torch_threads(threads):
+    with torch.no_grad(), compute_threads(threads):
         for i in range(len(queries)):
             q, keep = queries[i:i + 1], i >= warmup
             features, query_H_anchor, _, warped = timed("networks_ms", lambda q=q: recognizer.embed_queries(q), keep)
@@ -540,8 +536,7 @@ def measure_extra_baselines(cfg: DictConfig, options: DictConfig, gallery: Any, 
         index_s = time.perf_counter() - start
         by_threads = {}
         for n in counts:
-            with opencv_threads(n):
-                by_threads[str(n)] = median_query_ms(baseline, queries, warmup, n)
+            by_threads[str(n)] = median_query_ms(baseline, queries, warmup, n)
         threads = int(min(by_threads, key=lambda n: by_threads[n]))
         query_ms[name] = by_threads[str(threads)]
         details[name] = {"ms_by_threads": by_threads, "threads": threads, "index_seconds": index_s,
@@ -559,22 +554,6 @@ def thread_counts(options: DictConfig) -> list[int]:
     """The thread counts single queries are timed at: ``[bench.query_threads]``, or 1..the run's (null)."""
     value = options.get("query_threads")
     return [int(value)] if value is not None else list(range(1, torch.get_num_threads() + 1))
-
-
-@contextmanager
-def opencv_threads(threads: int) -> Iterator[None]:
-    """``cv2.setNumThreads(threads)`` inside the block (the keypoint baselines run in OpenCV), restored after."""
-    try:
-        import cv2
-    except ImportError:
-        yield
-        return
-    previous = cv2.getNumThreads()
-    cv2.setNumThreads(int(threads))
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(previous)
 
 
 def _query_path(recognizer: Any, query: torch.Tensor) -> str:

@@ -23,6 +23,31 @@ def torch_threads(threads: int | None) -> Iterator[None]:
             torch.set_num_threads(previous)
 
 
+@contextmanager
+def opencv_threads(threads: int | None) -> Iterator[None]:
+    """``cv2.setNumThreads(threads)`` inside the block, the previous count restored after (None: unchanged)."""
+    try:
+        import cv2
+    except ImportError:
+        cv2 = None
+    previous = cv2.getNumThreads() if cv2 is not None and threads is not None else None
+    if previous is not None and threads != previous:
+        cv2.setNumThreads(int(threads))
+    try:
+        yield
+    finally:
+        if previous is not None and cv2.getNumThreads() != previous:
+            cv2.setNumThreads(previous)
+
+
+@contextmanager
+def compute_threads(threads: int | None) -> Iterator[None]:
+    """A method's thread count: torch's intra-op threads and OpenCV's alike inside the block (None: unchanged).
+    MATL's query path and the keypoint baselines both run OpenCV (warps, SIFT), so a count timed is both."""
+    with torch_threads(threads), opencv_threads(threads):
+        yield
+
+
 @torch.no_grad()
 def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor, warmup: int = 5,
                     threads: int | None = None) -> float:
@@ -35,11 +60,11 @@ def median_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tenso
             or a keypoint baseline adapter), so models and baselines are timed the same way.
         queries: ``(Q, 3, H, W)``; the first ``warmup`` are run untimed (lazy initialisation: the
             recognizer compiles its query graph at its first call; caches).
-        threads: torch's intra-op threads during the measurement (None: leave them). One query is a
-            few small operations: on a small CPU shared with other work one thread is both faster and
-            far steadier than several, whose every operation waits for the slowest core (docs/speed.md).
+        threads: torch's and OpenCV's threads during the measurement (None: leave them; :func:`compute_threads`).
+            One query is a few small operations: on a small CPU shared with other work one thread is both faster
+            and far steadier than several, whose every operation waits for the slowest core (docs/speed.md).
     """
-    with torch_threads(threads):
+    with compute_threads(threads):
         return _median(_single_query_ms(predict, queries, warmup))
 
 
@@ -71,8 +96,8 @@ def alternating_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any],
     query by query would time each method right after another's working set.
 
     Args:
-        methods: name -> ``(predict, threads)``: the callable (as for :func:`median_query_ms`) and torch's
-            intra-op threads during its calls (None: leave them).
+        methods: name -> ``(predict, threads)``: the callable (as for :func:`median_query_ms`) and the thread
+            count during its calls, torch's and OpenCV's (:func:`compute_threads`; None: leave them).
         queries: ``(Q, 3, H, W)``.
     Returns:
         name -> median milliseconds.
@@ -83,7 +108,7 @@ def alternating_query_ms(methods: dict[str, tuple[Callable[[torch.Tensor], Any],
         turn = r % len(names)
         for name in names[turn:] + names[:turn]:
             predict, threads = methods[name]
-            with torch_threads(threads):
+            with compute_threads(threads):
                 times[name] += _single_query_ms(predict, queries, warmup)
     return {name: _median(t) for name, t in times.items()}
 
@@ -100,12 +125,12 @@ def batch_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor
         queries: ``(Q, 3, H, W)``, ``Q >= (warmup + 1) * batch``; a last partial batch is left out.
         batch: queries per call (>= 1).
         warmup: first batches run untimed.
-        threads: torch's intra-op threads during the measurement (None: leave them).
+        threads: torch's and OpenCV's threads during the measurement (:func:`compute_threads`; None: leave them).
     """
     if batch < 1 or len(queries) < (warmup + 1) * batch:
         raise ValueError(f"{len(queries)} queries do not make {warmup + 1} batches of {batch}")
     total, timed = 0.0, 0
-    with torch_threads(threads):
+    with compute_threads(threads):
         for k, first in enumerate(range(0, len(queries) - batch + 1, batch)):
             start = time.perf_counter()
             predict(queries[first:first + batch])
