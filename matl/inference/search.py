@@ -4,7 +4,9 @@ Two backends with one interface (``search(queries (Q, D)) -> (index (Q,), distan
 
 * :class:`ExactSearch` (default, ``search=exact``): a chunked matrix product in torch with the
   gallery's squared norms computed once, so a query costs one pass over the ``(G, D)`` gallery
-  matrix. Exact (up to float32 rounding, like any L2 search), no extra dependency, GPU-ready.
+  matrix. Exact (up to float32 rounding, like any L2 search), no extra dependency, GPU-ready. On the CPU
+  a few queries go through NumPy instead, and a single one through one numba-compiled pass (its latency
+  is the calls', not the arithmetic's).
 * :class:`FaissSearch` (``search=faiss``, optional ``pip install faiss-cpu``): a FAISS index, HNSW
   graph by default. Approximate: much faster than a full pass once the gallery holds hundreds of
   thousands of anchors, at a small recall cost that ``matl.bench`` measures.
