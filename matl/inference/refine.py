@@ -378,7 +378,7 @@ class RefinedRecognizer:
         else:  # a query without an anchor keeps the recognizer's answer
             found = (index >= 0)[:, None, None]
             H = torch.where(found, result.query_H_anchor, start)
-            old = pred.query_H_canon  # None when left out above: composed here, as the recognizer would have
+            old = pred.query_H_canon  # None when left out above: the unrefined pose, composed here
             old = compose_query_H_canon(start, canon[safe]) if old is None else old.double().to(device)
             pose = torch.where(found, compose_query_H_canon(H, canon[safe]), old)
         device = pred.query_H_anchor.device
