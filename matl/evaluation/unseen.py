@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import hydra
 import numpy as np
 import torch
@@ -454,13 +453,9 @@ def time_methods(recognizers: dict[str, Any], files: list[Path], warmup: int, th
     if len(shapes) != 1:
         raise MatlError(f"timing needs query files of one size, got {sorted(shapes)}")
     queries = torch.from_numpy(np.stack(arrays))  # (Q, H, W, 3 or 4)
-    previous = cv2.getNumThreads()
-    cv2.setNumThreads(int(threads))
-    try:
-        return {name: median_query_ms(lambda x, r=rec: r.predict_details([x[0].numpy()]), queries, warmup,
-                                      threads=int(threads)) for name, rec in recognizers.items()}
-    finally:
-        cv2.setNumThreads(previous)
+    # median_query_ms sets torch's and OpenCV's threads alike (matl.utils.timing.compute_threads)
+    return {name: median_query_ms(lambda x, r=rec: r.predict_details([x[0].numpy()]), queries, warmup,
+                                  threads=int(threads)) for name, rec in recognizers.items()}
 
 
 # ------------------------------------------------------------------------------------ entry point
