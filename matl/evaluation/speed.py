@@ -779,8 +779,11 @@ def print_summary(results: dict[str, Any], console: Console) -> None:
                   f"runtime={t.get('runtime')}" + (f" (fallback: {t['runtime_fallback']})"
                                                    if t.get("runtime_fallback") else ""))
     if "matl_refine" in q:
+        added = results.get("refine_added_ms")
+        # Signed: a model with an alignment stage skips it on the refined path, so this can be negative.
+        added_note = "-" if added is None else f"{added:+.2f}"
         table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")),
-                      f"+{_fmt(results.get('refine_added_ms'))} ms; {t.get('matl_refine_threads')} thread(s)")
+                      f"{added_note} ms against matl; {t.get('matl_refine_threads')} thread(s)")
         table.add_row("speedup_vs_sift_refine", _fmt(results.get("speedup_vs_sift_refine"), 1),
                       "sift_ransac / matl_refine")
     for name in ("matl_torch", "matl_torch_refine"):
