@@ -5,8 +5,9 @@ Two backends with one interface (``search(queries (Q, D)) -> (index (Q,), distan
 * :class:`ExactSearch` (default, ``search=exact``): a chunked matrix product in torch with the
   gallery's squared norms computed once, so a query costs one pass over the ``(G, D)`` gallery
   matrix. Exact (up to float32 rounding, like any L2 search), no extra dependency, GPU-ready. On the CPU
-  a few queries go through NumPy instead, and a single one through one numba-compiled pass (its latency
-  is the calls', not the arithmetic's).
+  a few queries against one chunk go through NumPy instead, and a single one through one numba-compiled
+  pass at any gallery size (its latency is the calls' up to tens of thousands of anchors, the memory's
+  beyond).
 * :class:`FaissSearch` (``search=faiss``, optional ``pip install faiss-cpu``): a FAISS index, HNSW
   graph by default. Approximate: much faster than a full pass once the gallery holds hundreds of
   thousands of anchors, at a small recall cost that ``matl.bench`` measures.
@@ -96,24 +97,27 @@ class ExactSearch:
         self.features = features.contiguous()
         self.sq_norms = self.features.pow(2).sum(-1)
         self.chunk = int(chunk)
-        # a few CPU float32 queries against one chunk go through NumPy: the same sums at a third of torch's
-        # per-op cost (a single query's search is a handful of small ops)
+        # CPU float32 galleries answer a single query in one compiled pass over the rows (no distance block, so
+        # at any gallery size: a handful of NumPy or torch calls cost more, and torch's chunked matrix-vector
+        # products many times more beyond a chunk), and a few queries against one chunk in NumPy (the same sums
+        # at a third of torch's per-op cost)
         self._numpy = None
-        if self.features.device.type == "cpu" and self.features.dtype == torch.float32 and len(features) <= chunk:
+        if self.features.device.type == "cpu" and self.features.dtype == torch.float32 and len(features):
             self._numpy = (self.features.detach().numpy(), self.sq_norms.detach().numpy())
-            if len(features):  # compiled (or loaded from numba's cache) here, not at the first query
-                _nearest_one(np.zeros(features.shape[1], np.float32), *(a[:1] for a in self._numpy))
+            # compiled (or loaded from numba's cache) here, not at the first query
+            _nearest_one(np.zeros(features.shape[1], np.float32), *(a[:1] for a in self._numpy))
 
     def search(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if (self._numpy is not None and len(queries) <= SMALL_BATCH and len(self.features)
+        if (self._numpy is not None and len(queries) <= SMALL_BATCH
                 and queries.device.type == "cpu" and queries.dtype == torch.float32):
             gallery, sq_norms = self._numpy
-            if len(queries) == 1:  # a camera crop at a time: one compiled pass (a handful of NumPy calls cost more)
+            if len(queries) == 1:  # a camera crop at a time
                 i, best = _nearest_one(np.ascontiguousarray(queries.detach().numpy()[0]), gallery, sq_norms)
                 found = best < math.inf
                 return (torch.from_numpy(np.array([i if found else 0], dtype=np.int64)),
                         torch.from_numpy(np.array([math.sqrt(max(best, 0.0)) if found else math.inf], np.float32)))
-            return _nearest_numpy(queries.detach().numpy(), gallery.T, sq_norms)
+            if len(gallery) <= self.chunk:
+                return _nearest_numpy(queries.detach().numpy(), gallery.T, sq_norms)
         return nearest(queries, self.features, self.chunk, self.sq_norms)
 
 

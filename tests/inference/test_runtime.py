@@ -131,3 +131,18 @@ def test_numpy_search_equals_torch_search() -> None:
     for q in (queries[:3], *queries[:3].split(1)):
         index, distance = broken.search(q)
         assert index.tolist() == [0] * len(q) and distance.isinf().all()
+
+
+def test_single_query_search_beyond_one_chunk_equals_the_chunked_search() -> None:
+    g = torch.Generator().manual_seed(5)
+    features = torch.randn(50, 16, generator=g)
+    features[41] = features[3]  # a tie across chunks: the lower index wins
+    queries = torch.randn(4, 16, generator=g)
+    queries[0] = features[3]
+    search = ExactSearch(features, chunk=16)  # 4 chunks: one query compiled, a batch through torch's chunks
+    for q in (queries, *queries.split(1)):
+        index, distance = search.search(q)
+        ref_index, ref_distance = nearest(q, features, chunk=16)
+        assert torch.equal(index, ref_index) and index.dtype == torch.int64
+        assert torch.allclose(distance, ref_distance, atol=5e-3)
+    assert int(search.search(queries[:1])[0]) == 3
