@@ -422,6 +422,8 @@ CASES = [
     cli("render data=foo (unknown dataset)", "matl.render", ["data=foo"], "unknown option data=foo"),
     cli("render data.image_size=4", "matl.render", ["data.image_size=4"], "data.image_size=4 is invalid"),
     cli("predict gallery_fill=2", "matl.predict", ["gallery_fill=2"], "gallery_fill=2 is invalid"),
+    cli("predict foreground.retry_insets=[0.7]", "matl.predict", ["foreground.retry_insets=[0.7]"],
+        "foreground.retry_insets=[0.7] is invalid"),
     cli("eval data=foo (unknown dataset)", "matl.eval", ["data=foo"], "unknown option data=foo"),
     # --- image files (queries and gallery images go through the same loader)
     image("image: text file named .png", lambda p: (p.write_text("hello"), p)[1], "not an image"),

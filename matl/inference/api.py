@@ -206,6 +206,18 @@ def _as_rgb(image: Any, what: str, keep_alpha: bool = False) -> np.ndarray:
     return np.ascontiguousarray(x)
 
 
+def _with_rows(value: Any, rows: list[int], source: Any, source_rows: list[int]) -> Any:
+    """``value`` (a tensor, or a dataclass of per-query tensors such as :class:`Prediction`) with its rows ``rows``
+    replaced by ``source``'s rows ``source_rows``; new tensors, fields that are None stay None."""
+    if isinstance(value, torch.Tensor):
+        out = value.clone()
+        out[rows] = source[source_rows].to(out.device, out.dtype)
+        return out
+    return dataclasses.replace(value, **{
+        f.name: _with_rows(getattr(value, f.name), rows, getattr(source, f.name), source_rows)
+        for f in dataclasses.fields(value) if getattr(value, f.name) is not None})
+
+
 def calibrate_open_set(genuine: torch.Tensor, impostor: torch.Tensor, quantile: float) -> float:
     """The open-set threshold: the ``quantile`` quantile of the genuine statistics.
 
@@ -666,15 +678,9 @@ class Recognizer:
         model-size queries."""
         recognizer, _ = self._build()
         prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
-        fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
-        queries = torch.stack([f[0] for f in fitted]).to(self.device)
-        query_H_file = torch.stack([f[1].model_H_file for f in fitted])
-        pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
-                                                [p[2] for p in prepared])
-        verification = None
-        if self._verifying() and pred.query_H_anchor is not None:
-            verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
-            pred = self._reranked(pred, verification)
+        pred, queries, query_H_file, verification = self._answer(recognizer, prepared)
+        if verification is not None and self.foreground is not None and self.foreground.retry_insets:
+            pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries, verification)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None
@@ -698,6 +704,51 @@ class Recognizer:
                                        alternatives[i],
                                        float("nan") if verification is None else float(verification.distance[i])))
         return matches, pred, queries
+
+    def _answer(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+                ) -> tuple[Prediction, torch.Tensor, torch.Tensor, Verification | None]:
+        """The verified model-frame answer of queries prepared by :func:`mask_query`: the prediction (re-ranked
+        by verification), the model-size queries ``(B, 3, S, S)`` of the last foreground pass, ``model_H_file``
+        ``(B, 3, 3)`` and the verification (None without one)."""
+        fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
+        queries = torch.stack([f[0] for f in fitted]).to(self.device)
+        query_H_file = torch.stack([f[1].model_H_file for f in fitted])
+        pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
+                                                [p[2] for p in prepared])
+        verification = None
+        if self._verifying() and pred.query_H_anchor is not None:
+            verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
+            pred = self._reranked(pred, verification)
+        return pred, queries, query_H_file, verification
+
+    def _foreground_retries(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                            pred: Prediction, queries: torch.Tensor, verification: Verification
+                            ) -> tuple[Prediction, torch.Tensor, Verification]:
+        """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
+        GrabCut from wider insets (:meth:`GrabCutForeground.retries`) and answered again; it keeps the answer
+        whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
+        keeps the crop's size)."""
+        retried: list[int] = []
+        again: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        for i, (_, rgb, found) in enumerate(prepared):
+            if found is None or bool(verification.verified[i]):
+                continue
+            for mask in self.foreground.retries(rgb):
+                retried.append(i)
+                again.append((np.ascontiguousarray(rgb * mask[..., None]), rgb, mask))
+        if not again:
+            return pred, queries, verification
+        alt_pred, alt_queries, _, alt_verification = self._answer(recognizer, again)
+        best = verification.distance.clone()
+        take: dict[int, int] = {}
+        for j, i in enumerate(retried):
+            if float(alt_verification.distance[j]) < float(best[i]):
+                best[i], take[i] = alt_verification.distance[j], j
+        if not take:
+            return pred, queries, verification
+        rows, source = list(take), list(take.values())
+        return (_with_rows(pred, rows, alt_pred, source), _with_rows(queries, rows, alt_queries, source),
+                _with_rows(verification, rows, alt_verification, source))
 
     def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
         """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""

@@ -11,6 +11,12 @@ the foreground step gives it one, and the query is then used exactly as an RGBA 
   largest connected component that does not touch the crop's border is kept (the largest of all when
   every one touches it: a neighbour is cut by the edge, the product is held by the box) and its holes
   are filled.
+* ``retry_insets``: when the answer of a GrabCut-masked query does not verify (its pose does not explain
+  the query: ``1 - ZNCC`` above ``verify_max``, :mod:`matl.inference.verify`), GrabCut runs again from
+  rectangles inset by these fractions of the crop's side (:meth:`GrabCutForeground.retries`): a product
+  whose colours resemble the background, or a neighbour the 2 px band did not seed, is separated by a
+  wider band. Each mask is recognised and verified like the first, and the query keeps the answer that
+  verifies best (the first one's if none does better). A query whose first answer verifies costs nothing.
 * ``passes`` pose passes (:func:`pose_mask`): the first answer's plane, warped by its pose
   ``query_H_canon`` into the query, is a mask of the product's true outline; the query is masked again
   with it (intersected with the GrabCut alpha, so background within the pose's error stays out) and
@@ -65,6 +71,9 @@ class GrabCutForeground:
             at most ``black_level`` (0: the training convention, exactly black) already has its mask and is
             used as given (a product may reach into the band).
         seed: OpenCV's random seed, set before each call (k-means of the colour models).
+        retry_insets: fractions of the crop's side (each in (0, 0.5)): the insets of the retries of a query
+            whose first answer does not verify (empty: no retries). The recognizer runs them
+            (:class:`matl.inference.api.Recognizer`); they need verification (``verify_top_k`` > 0).
     """
 
     inset_px: int = 2
@@ -75,8 +84,16 @@ class GrabCutForeground:
     black_level: float = 0.0
     black_fraction: float = 0.5
     seed: int = 0
+    retry_insets: tuple[float, ...] = (0.08, 0.12)
 
     def __post_init__(self) -> None:
+        try:
+            self.retry_insets = tuple(float(f) for f in self.retry_insets)
+        except (TypeError, ValueError):
+            self.retry_insets = (float("nan"),)  # reported below
+        if not all(0.0 < f < 0.5 for f in self.retry_insets):
+            raise MatlError(f"foreground grabcut: retry_insets={list(self.retry_insets)}: use fractions of the crop's "
+                            "side in (0, 0.5), e.g. [0.08, 0.12], or [] for no retries")
         if (int(self.inset_px) < 1 or int(self.iterations) < 1 or int(self.open_px) < 0 or int(self.passes) < 0
                 or int(self.alpha_band_px) < 0 or not 0.0 <= float(self.black_level) < 1.0
                 or not 0.0 < float(self.black_fraction) <= 1.0):
@@ -92,15 +109,37 @@ class GrabCutForeground:
         A crop whose border band is black (``black_level``, ``black_fraction``), one too small for the
         band, or one where nothing is found, keeps every pixel.
         """
+        mask = self.segment(rgb, int(self.inset_px))
+        return np.ones(rgb.shape[:2], np.float32) if mask is None else mask
+
+    def retries(self, rgb: np.ndarray) -> list[np.ndarray]:
+        """The masks ``(H, W)`` float32 in {0, 1} of GrabCut from each of ``retry_insets`` (a fraction of the
+        crop's shorter side, at least ``inset_px``) for a float RGB ``(H, W, 3)`` crop in [0, 1]; none for a crop
+        that :meth:`__call__` uses as given, and none where GrabCut finds nothing."""
+        if not self.segments(rgb):
+            return []
+        side = min(rgb.shape[:2])
+        masks = (self.segment(rgb, max(int(self.inset_px), round(f * side))) for f in self.retry_insets)
+        return [m for m in masks if m is not None]
+
+    def segments(self, rgb: np.ndarray) -> bool:
+        """Whether GrabCut runs on a float RGB ``(H, W, 3)`` crop: not on one too small for the band nor on one
+        whose border band is black (``black_level``, ``black_fraction``: already segmented)."""
         h, w = rgb.shape[:2]
         inset = int(self.inset_px)
-        whole = np.ones((h, w), np.float32)
         if h <= 2 * inset + 2 or w <= 2 * inset + 2:
-            return whole
+            return False
         band = np.ones((h, w), bool)
         band[inset:h - inset, inset:w - inset] = False
-        if float((rgb[band].max(-1) <= self.black_level).mean()) >= self.black_fraction:
-            return whole
+        return float((rgb[band].max(-1) <= self.black_level).mean()) < self.black_fraction
+
+    def segment(self, rgb: np.ndarray, inset: int) -> np.ndarray | None:
+        """GrabCut's mask ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop, from the rectangle
+        ``inset`` px inside its border; None where the crop keeps every pixel (:meth:`segments` is false, the
+        rectangle is empty, GrabCut finds nothing)."""
+        h, w = rgb.shape[:2]
+        if not self.segments(rgb) or h <= 2 * inset + 2 or w <= 2 * inset + 2:
+            return None
         bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
         labels = np.zeros((h, w), np.uint8)
         background, foreground = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
@@ -109,14 +148,14 @@ class GrabCutForeground:
             cv2.grabCut(bgr, labels, (inset, inset, w - 2 * inset, h - 2 * inset), background, foreground,
                         int(self.iterations), cv2.GC_INIT_WITH_RECT)
         except cv2.error:  # a colour model without samples (e.g. a flat image)
-            return whole
+            return None
         mask = ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.uint8)
         if self.open_px > 0:
             k = 2 * int(self.open_px) + 1
             mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((k, k), np.uint8))
         mask = _main_component(mask)
         if not mask.any():
-            return whole
+            return None
         return _fill_holes(mask).astype(np.float32)
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from matl.data.catalog_names import SYNTHETIC_CATALOGS  # not matl.data.catalog: that import takes seconds
@@ -139,6 +139,8 @@ RULES: tuple[Rule, ...] = (
     Rule("gallery_fill", fraction, "a fraction in (0, 1]"),
     Rule("query_fill", fraction, "a fraction in (0, 1]"),
     Rule("timing_queries", int_at_least(0), "an integer >= 0"),
+    Rule("foreground.retry_insets", lambda v: isinstance(v, (list, tuple, ListConfig)) and all(
+        _is_number(f) and 0 < f < 0.5 for f in v), "a list of fractions of the crop's side in (0, 0.5), or []"),
     Rule("image_size", int_at_least(16), "an integer >= 16, or null (the checkpoint's size)"),
 )
 

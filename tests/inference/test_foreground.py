@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -163,3 +164,59 @@ def test_recognizer_segments_rgb_queries_and_keeps_an_rgba_querys_alpha(tmp_path
     clean = read_rgb(queries / "red_box.png")
     assert rec.predict(clean).distance == pytest.approx(plain.predict(clean).distance)
     assert math.isfinite(rec.predict(clean).distance)
+
+
+@dataclass(eq=False)
+class ScriptedForeground(GrabCutForeground):
+    """GrabCut replaced by given masks where it would run: ``first``, and ``later`` as the retries (counted)."""
+
+    first: np.ndarray | None = None
+    later: list[np.ndarray] | None = None
+    asked: int = 0
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        return self.first if self.segments(rgb) else np.ones(rgb.shape[:2], np.float32)
+
+    def retries(self, rgb: np.ndarray) -> list[np.ndarray]:
+        self.asked += 1
+        return list(self.later or []) if self.segments(rgb) else []
+
+
+def test_a_query_whose_answer_does_not_verify_is_masked_again_and_keeps_the_best_verified(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    scene, inside = cluttered_query(queries, "green_can")
+    neighbour = np.zeros(inside.shape, np.float32)
+    neighbour[:, : inside.shape[1] // 3] = 1.0  # a mask on the neighbour alone: nothing there verifies
+    step = ScriptedForeground(alpha_band_px=0, first=neighbour, later=[neighbour, inside])
+    first = stub_recognizer(threshold=None, foreground=ScriptedForeground(alpha_band_px=0, first=neighbour,
+                                                                          retry_insets=())).enrol(gallery)
+    wrong = first.predict(scene)
+    assert not wrong.verification <= 0.1  # the first mask's answer does not verify
+    rec = stub_recognizer(threshold=None, foreground=step).enrol(gallery)
+    right = rec.predict(scene)
+    assert step.asked == 1 and right.object == "green_can" and right.verification <= 0.1
+    truth = stub_recognizer(threshold=None, foreground=ScriptedForeground(alpha_band_px=0, first=inside)).enrol(gallery)
+    expected = truth.predict(scene)  # the answer of the retry's mask, as if it had been the first
+    assert right.distance == pytest.approx(expected.distance) and np.allclose(right.H, expected.H)
+    # a batch: only the query that does not verify is retried, and the other keeps its answer
+    clean = read_rgb(queries / "red_box.png")
+    step.asked = 0
+    both = rec.predict([clean, scene])
+    assert step.asked == 1 and [m.object for m in both] == ["red_box", "green_can"]
+    # retries that verify no better leave the first answer as it was
+    worse = ScriptedForeground(alpha_band_px=0, first=neighbour, later=[neighbour])
+    same = stub_recognizer(threshold=None, foreground=worse).enrol(gallery).predict(scene)
+    assert worse.asked == 1 and same.object == wrong.object and same.distance == pytest.approx(wrong.distance)
+
+
+def test_retries_mask_from_wider_insets_and_only_crops_grabcut_segments() -> None:
+    image, truth = clutter_scene()
+    step = GrabCutForeground(retry_insets=(0.08, 0.2))
+    masks = step.retries(image)
+    assert len(masks) == 2 and all(m.shape == truth.shape and iou(m, truth) > 0.8 for m in masks)
+    assert np.array_equal(masks[0], step.segment(image, round(0.08 * 96)))
+    assert step.retries(image * truth[..., None]) == []  # a black border: used as given, nothing to retry
+    assert GrabCutForeground(retry_insets=[0.1]).retry_insets == (0.1,)
+    for bad in ([0.0], [0.5], ["wide"]):
+        with pytest.raises(MatlError, match="retry_insets"):
+            GrabCutForeground(retry_insets=bad)
