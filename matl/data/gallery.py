@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -27,6 +27,8 @@ class Gallery:
     anchor_H_canon: torch.Tensor
     object_names: list[str]
     plane_names: list[str]
+    #: (anchor_H_canon, its float64 copy): converted once, again only when anchor_H_canon is replaced
+    _canon64: tuple[torch.Tensor, torch.Tensor] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -38,6 +40,12 @@ class Gallery:
     @property
     def num_anchors(self) -> int:
         return int(self.anchor_index.max()) + 1 if len(self) else 0
+
+    def anchor_H_canon64(self) -> torch.Tensor:
+        """``anchor_H_canon`` ``(G, 3, 3)`` in float64 (poses are composed in float64), converted once."""
+        if self._canon64 is None or self._canon64[0] is not self.anchor_H_canon:
+            self._canon64 = (self.anchor_H_canon, self.anchor_H_canon.double())
+        return self._canon64[1]
 
     def to(self, device: torch.device | str) -> Gallery:
         return Gallery(self.images.to(device), self.object_index.to(device), self.plane_index.to(device),

@@ -762,7 +762,7 @@ class Recognizer:
         query_H_anchor = torch.where(rows, verification.query_H_anchor.to(device, pred.query_H_anchor.dtype),
                                      pred.query_H_anchor)
         query_H_canon = torch.where(rows, compose_query_H_canon(query_H_anchor.double(),
-                                                                g.anchor_H_canon.double()[index]), pred.query_H_canon)
+                                                                g.anchor_H_canon64()[index]), pred.query_H_canon)
         distance = torch.where(changed, verification.feature_distance.to(device, pred.distance.dtype), pred.distance)
         return dataclasses.replace(pred, gallery_index=index, object_index=g.object_index[index],
                                    plane_index=g.plane_index[index], anchor_index=g.anchor_index[index],

@@ -61,6 +61,7 @@ from matl.geometry import degenerate_matrix, sample_by_pixels
 from matl.inference import fast_refine_kernels as kernels
 from matl.inference.refine import RefineResult
 from matl.utils.errors import MatlError
+from matl.utils.timing import opencv_threads
 
 __all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
 
@@ -488,10 +489,7 @@ class FastRefiner:
         index = anchor_index.detach().cpu().numpy()
         out = np.empty((B, 3, 3))
         before, after, accepted = np.empty(B), np.empty(B), np.zeros(B, dtype=bool)
-        previous = cv2.getNumThreads() if self.threads is not None else None
-        if self.threads is not None and self.threads != previous:
-            cv2.setNumThreads(self.threads)
-        try:
+        with opencv_threads(self.threads):
             for i in range(B):
                 k = int(index[i])
                 image, std = gray[i]
@@ -499,9 +497,6 @@ class FastRefiner:
                     image, templates.anchors[k], starts[i], timing=B == 1,
                     foreground=templates.foreground[k] if templates.foreground is not None else None,
                     outside=templates.outside[k] if templates.outside is not None else None, std=std)
-        finally:
-            if self.threads is not None and self.threads != previous:
-                cv2.setNumThreads(previous)
         result = (torch.from_numpy(out), torch.from_numpy(before), torch.from_numpy(after), torch.from_numpy(accepted))
         device = query_H_anchor.device
         return RefineResult(*(result if device.type == "cpu" else (t.to(device) for t in result)))

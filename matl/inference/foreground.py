@@ -116,8 +116,6 @@ class GrabCutForeground:
         """The masks ``(H, W)`` float32 in {0, 1} of GrabCut from each of ``retry_insets`` (a fraction of the
         crop's shorter side, at least ``inset_px``) for a float RGB ``(H, W, 3)`` crop in [0, 1]; none for a crop
         that :meth:`__call__` uses as given, and none where GrabCut finds nothing."""
-        if not self.segments(rgb):
-            return []
         side = min(rgb.shape[:2])
         masks = (self.segment(rgb, max(int(self.inset_px), round(f * side))) for f in self.retry_insets)
         return [m for m in masks if m is not None]

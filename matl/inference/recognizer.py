@@ -260,7 +260,6 @@ class Recognizer(nn.Module):
         #: optional onnxruntime path (:mod:`matl.inference.runtime`, ``runtime=onnxruntime``), used for CPU float32
         #: batches (after the int8 path, when both are set); None: torch
         self.onnx: Any = None
-        self._pose_table: tuple[torch.Tensor, torch.Tensor] | None = None  # (source, float64 copy)
         if gallery_features is not None and len(gallery_features) != len(gallery):
             raise ValueError(f"{len(gallery_features)} gallery features for {len(gallery)} gallery images")
         self._search_factory: SearchFactory = search or ExactSearch
@@ -281,13 +280,6 @@ class Recognizer(nn.Module):
         """Switch the search backend (e.g. to FAISS for a very large gallery)."""
         self._search_factory = factory
         self.search = factory(self._gallery_features)
-
-    def _anchor_H_canon64(self) -> torch.Tensor:
-        """``gallery.anchor_H_canon`` in float64, converted once (again only if the gallery's tensor changes)."""
-        source = self.gallery.anchor_H_canon
-        if self._pose_table is None or self._pose_table[0] is not source:
-            self._pose_table = (source, source.double())
-        return self._pose_table[1]
 
     def _compiled_path(self, queries: torch.Tensor) -> CompiledQueryPath | None:
         """The compiled path when it applies to this batch (see ``compiled_max_batch``), else None."""
@@ -348,6 +340,6 @@ class Recognizer(nn.Module):
             query_H_anchor = aligned.query_H_anchor
         query_H_canon = None
         if query_H_anchor is not None and pose:
-            query_H_canon = compose_query_H_canon(query_H_anchor.double(), self._anchor_H_canon64()[index])
+            query_H_canon = compose_query_H_canon(query_H_anchor.double(), g.anchor_H_canon64()[index])
         return Prediction(index, g.object_index[index], g.plane_index[index], g.anchor_index[index], distance,
                           query_H_anchor, query_H_canon, warped, degenerate, features=features)

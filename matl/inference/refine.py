@@ -324,10 +324,9 @@ class RefinedRecognizer:
         self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
         # MATL's recognizer can leave its pose out (this call composes the refined one); others answer in full
         self._pose_later = isinstance(recognizer, Recognizer)
-        self._canon: tuple[torch.Tensor, torch.Tensor] | None = None  # (gallery.anchor_H_canon, its float64 copy)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
-        if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later", "_canon"):
+        if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later"):
             raise AttributeError(name)
         return getattr(self.recognizer, name)
 
@@ -348,13 +347,6 @@ class RefinedRecognizer:
         finally:
             self.recognizer.align = align
 
-    def _anchor_H_canon64(self) -> torch.Tensor:
-        """``gallery.anchor_H_canon`` in float64, converted once (again only if the gallery's tensor changes)."""
-        source = self.gallery.anchor_H_canon
-        if self._canon is None or self._canon[0] is not source:
-            self._canon = (source, source.double())
-        return self._canon[1]
-
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor) -> Prediction:
         pred = self._recognize(queries)
@@ -371,7 +363,7 @@ class RefinedRecognizer:
         else:
             result = self.refiner(queries.to(device), g.images[safe], start)
         self.last = result
-        canon = self._anchor_H_canon64()
+        canon = g.anchor_H_canon64()
         if every:
             H = result.query_H_anchor
             pose = compose_query_H_canon(H, canon[safe])
