@@ -24,7 +24,7 @@ class BaselinePrediction(Prediction):
 
 
 class BaselineRecognizer:
-    """Makes a keypoint matcher answer like :class:`matl.inference.recognizer.Recognizer`.
+    """Makes a keypoint matcher answer like :class:`matl.inference.recognizer.TensorRecognizer`.
 
     The matcher indexes the gallery's anchor images once; ``match`` gives the gallery image with
     most RANSAC inliers and ``query_H_anchor``. The pose is ``query_H_anchor @ anchor_H_canon`` of

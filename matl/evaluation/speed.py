@@ -426,7 +426,7 @@ def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, c
     The model is exported to a temporary folder (checked against the eager model as every export), the
     gallery embedded by the exported gallery network, and the query timed as ``query_ms.matl``: the same
     queries and warm-up, at each thread count (onnxruntime's intra-op threads, and torch's for the rest),
-    kept at its fastest. The timed call is a :class:`~matl.inference.recognizer.Recognizer` call whose
+    kept at its fastest. The timed call is a :class:`~matl.inference.recognizer.TensorRecognizer` call whose
     networks step (``embed_queries``) is the onnxruntime session: the exact gallery search (torch) on
     the ONNX embeddings and the pose are the eager query's own code. Without onnxruntime, on a GPU run
     or for a model without an embedding network, ``query_ms`` has no ``matl_onnx`` and
@@ -458,14 +458,15 @@ def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, c
     recognizer.gallery_features = torch.cat([gallery_net(images[i:i + 256]) for i in range(0, len(images), 256)])
 
     def onnx_query_path(net: OnnxNetwork) -> Callable[[torch.Tensor], tuple[Any, ...]]:
-        """``Recognizer.embed_queries`` by ``net``: ``(embedding, query_H_anchor or None, degenerate, warped)``."""
+        """``TensorRecognizer.embed_queries`` by ``net``:
+        ``(embedding, query_H_anchor or None, degenerate, warped)``."""
         if stn is not None:
             return net
         return lambda q: (net(q), None, torch.zeros(len(q), dtype=torch.bool), q)
 
     by_threads = {}
     for n, net in networks.items():
-        recognizer.embed_queries = onnx_query_path(net)  # the networks step of Recognizer.forward
+        recognizer.embed_queries = onnx_query_path(net)  # the networks step of TensorRecognizer.forward
         by_threads[str(n)] = median_query_ms(recognizer, queries.cpu(), warmup, n)
     threads = int(min(by_threads, key=lambda n: by_threads[n]))
     with torch.no_grad():
@@ -580,7 +581,7 @@ def _default_faiss_node() -> DictConfig:
 def fixed_query_ms(model: Any, recognizer: Any, queries: torch.Tensor, warmup: int, device: torch.device,
                    threads: int | None = None) -> float:
     """Median milliseconds of ``c(s(query))`` for one query (the part of a query that does not
-    depend on the gallery size), by the recognizer's own path (:meth:`Recognizer.embed_queries`)."""
+    depend on the gallery size), by the recognizer's own path (:meth:`TensorRecognizer.embed_queries`)."""
     embed_one = getattr(recognizer, "embed_queries", None)
     if embed_one is None:  # a recognizer without an embedding path (the STN classifier): its networks
         def embed_one(q: torch.Tensor) -> torch.Tensor:

@@ -65,8 +65,7 @@ from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
-from matl.inference.recognizer import Prediction, embed
-from matl.inference.recognizer import Recognizer as GalleryRecognizer
+from matl.inference.recognizer import Prediction, TensorRecognizer, embed
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import RUNTIMES, runtime_path
 from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
@@ -455,9 +454,9 @@ class Recognizer:
                                 objects, self.num_anchors).to(self.device)
         features = torch.cat([p.features for p in self._planes]).to(self.device)
         model = self.model
-        recognizer = GalleryRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
-                                       gallery_features=features, search=self.search,
-                                       align=getattr(model, "align", None))
+        recognizer = TensorRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
+                                      gallery_features=features, search=self.search,
+                                      align=getattr(model, "align", None))
         if self.quantize == "int8":
             self.quantize_fallback = quantize_recognizer(recognizer, calibration_images(gallery.images))
         if self.runtime == "onnxruntime":  # the path depends on the networks only: built once, kept across galleries
@@ -490,7 +489,7 @@ class Recognizer:
         for plane, chunk in zip(missing, features.float().cpu().split(self.calibration_warps), strict=True):
             plane.calibration = chunk
 
-    def _gallery_recognizer(self) -> GalleryRecognizer:
+    def _gallery_recognizer(self) -> TensorRecognizer:
         """The batch recognizer without its refinement wrapper (its networks and gallery features)."""
         recognizer, _ = self._build()
         return getattr(recognizer, "recognizer", recognizer)

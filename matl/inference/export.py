@@ -37,7 +37,7 @@ _SQUARINGS = 24
 
 def __getattr__(name: str) -> Any:
     """``QueryNet``: :class:`matl.inference.recognizer.QueryGraph`, the ``s()`` + ``c()`` graph that
-    ``Recognizer`` itself compiles for single queries, so the exported network and the in-process
+    ``TensorRecognizer`` itself compiles for single queries, so the exported network and the in-process
     fast path are one piece of code. Imported on first use (matl.models loads kornia; a bad option
     of the CLI is reported before that)."""
     if name == "QueryNet":

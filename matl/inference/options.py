@@ -32,7 +32,7 @@ def configure_recognizer(recognizer: Callable[..., Prediction], cfg: DictConfig
     """Apply ``cfg.search`` and ``cfg.refine`` / ``cfg.refiner`` to a recognizer.
 
     Args:
-        recognizer: MATL's ``Recognizer`` (has ``use_search``), the STN classifier's or a baseline's.
+        recognizer: MATL's ``TensorRecognizer`` (has ``use_search``), the STN classifier's or a baseline's.
         cfg: an eval / predict / bench config; missing keys mean the defaults (exact, no refinement).
     Returns:
         The recognizer to call, and what was applied (for ``eval.json`` and friends):

@@ -9,7 +9,7 @@ mode (``torch.ao.quantization.quantize_fx``; torch 2.13 no longer ships PT2E's
   regressor (both of its applications) and of the feature net ``c()``;
 * kept in float32: the warps (``grid_sample``), the homography algebra (composition, degeneracy
   guard, pixel conversion), the global max pool and the L2 normalisation of the embedding, and the
-  gallery search and pose (unchanged, :class:`matl.inference.recognizer.Recognizer`).
+  gallery search and pose (unchanged, :class:`matl.inference.recognizer.TensorRecognizer`).
 
 The result is one TorchScript graph (:class:`~matl.inference.recognizer.QueryGraph` with the quantised
 networks swapped in; traced, frozen, ``optimize_for_inference``), built once per recognizer by
@@ -241,7 +241,7 @@ class QuantizedQueryPath:
 
 def quantize_recognizer(recognizer: Any, calibration: torch.Tensor | Iterable[torch.Tensor],
                         gallery: str = "int8") -> str | None:
-    """Give a :class:`~matl.inference.recognizer.Recognizer` the int8 query path, in place.
+    """Give a :class:`~matl.inference.recognizer.TensorRecognizer` the int8 query path, in place.
 
     Args:
         recognizer: MATL's recognizer (``feature_net``, ``stn``, ``gallery``, ``gallery_features``).

@@ -9,7 +9,7 @@ built at the first call and rebuilt whenever a weight changes.
 
 With an alignment stage (``model.align``, :mod:`matl.models.align`) the stage runs after the search, on
 the networks' outputs of whichever path ran (eager, compiled, int8, or an exported query network put
-in place of :meth:`Recognizer.embed_queries`), against the anchor the search returned; the stage
+in place of :meth:`TensorRecognizer.embed_queries`), against the anchor the search returned; the stage
 itself is always eager float32 (it is not part of the compiled, int8 or exported graphs).
 """
 
@@ -38,7 +38,7 @@ from matl.models.feature import FeatureNet
 from matl.models.stn import SpatialTransformer, regress_homography
 
 # nearest lives in matl.inference.search
-__all__ = ["MODAL_LAYERS", "CompiledQueryPath", "Prediction", "QueryGraph", "Recognizer", "embed", "nearest",
+__all__ = ["MODAL_LAYERS", "CompiledQueryPath", "Prediction", "QueryGraph", "TensorRecognizer", "embed", "nearest",
            "weights_key"]
 
 log = logging.getLogger(__name__)
@@ -213,7 +213,7 @@ def _optimised_trace(graph: QueryGraph, size: int) -> torch.jit.ScriptModule:
     return compiled
 
 
-class Recognizer(nn.Module):
+class TensorRecognizer(nn.Module):
     """Holds ``c()``, ``s()`` and a gallery's embeddings; answers class and pose for query batches.
 
     Args:

@@ -49,7 +49,7 @@ from matl.geometry import (
     pixel_to_normalised,
     sample_by_normalised,
 )
-from matl.inference.recognizer import Prediction, Recognizer
+from matl.inference.recognizer import Prediction, TensorRecognizer
 
 __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
 
@@ -300,7 +300,7 @@ class RefinedRecognizer:
     """A recognizer whose poses are refined against the anchor it selected (``refine=true``).
 
     Wraps anything returning a :class:`Prediction` with ``query_H_anchor`` and ``gallery_index``
-    (MATL's :class:`~matl.inference.recognizer.Recognizer`, the STN classifier's, a keypoint baseline's);
+    (MATL's :class:`~matl.inference.recognizer.TensorRecognizer`, the STN classifier's, a keypoint baseline's);
     recognition is unchanged, ``query_H_anchor`` and ``query_H_canon`` are replaced. Queries without
     a match (``gallery_index == -1``) or without a pose keep their prediction. A refiner whose ``start``
     is ``stn`` refines ``s()``'s pose: the recognizer's alignment stage (``model.align``), whose job the
@@ -323,7 +323,7 @@ class RefinedRecognizer:
         self.templates = templates  # per-anchor data of the inverse-compositional refiner (None: photometric)
         self.last: RefineResult | None = None  # the last batch's refinement details (for diagnostics)
         # MATL's recognizer can leave its pose out (this call composes the refined one); others answer in full
-        self._pose_later = isinstance(recognizer, Recognizer)
+        self._pose_later = isinstance(recognizer, TensorRecognizer)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
         if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later"):

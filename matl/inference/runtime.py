@@ -91,7 +91,7 @@ class OnnxRuntimeQueryPath:
 
     ``path(queries (B, 3, S, S) CPU float32) -> (embedding (B, D), query_H_anchor (B, 3, 3) float32 pixel,
     degenerate (B,) bool, warped (B, 3, S, S))``, the outputs of
-    :meth:`~matl.inference.recognizer.Recognizer.embed_queries`; None when the networks no longer qualify or
+    :meth:`~matl.inference.recognizer.TensorRecognizer.embed_queries`; None when the networks no longer qualify or
     the graphs could not be built (``failure`` says why).
 
     Args:

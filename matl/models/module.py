@@ -17,8 +17,8 @@ import torch
 from torch import nn
 
 from matl.data.gallery import Gallery
-from matl.geometry import warp_image
-from matl.inference.recognizer import Recognizer
+from matl.geometry import pixel_to_normalised, sample_by_normalised_kornia, warp_image
+from matl.inference.recognizer import TensorRecognizer
 from matl.losses import MultiAnchorAppearanceLoss, appearance_distance
 from matl.models.align import AlignmentStage
 from matl.models.evaluation import PoseEvaluationModule
@@ -43,7 +43,7 @@ class MATLModule(PoseEvaluationModule):
             extra images).
         optimizer / scheduler: partially-instantiated torch optimiser / LR scheduler factories.
         image_size: model image side.
-        anchor_choice: see :class:`Recognizer`.
+        anchor_choice: see :class:`TensorRecognizer`.
         appearance_levels: pyramid levels of the appearance loss (paper: 1; see ``appearance_distance``).
         appearance: ``forward`` is Eq. 4, ``||I^a_* - s(I^p)||_1``. ``symmetric`` (beyond the paper)
             averages it with the backward term ``||I^p - s^-1(I^a_*)||_1`` (the selected anchor
@@ -55,7 +55,7 @@ class MATLModule(PoseEvaluationModule):
             the appearance loss of the final homography (``appearance`` and ``appearance_mask`` as for
             ``s()``) is added to ``s()``'s own: ``loss = metric + lam * (L_app(s) + L_app(stage))``.
             Recognition still uses ``c(s(query))``; the stage runs after the search
-            (:class:`~matl.inference.recognizer.Recognizer`).
+            (:class:`~matl.inference.recognizer.TensorRecognizer`).
         appearance_mask: ``none`` (paper) or ``foreground`` (beyond the paper): every appearance term
             is averaged over the anchor's foreground only, ``batch["anchor_masks"]`` ``(B, N, 1, S, S)``
             (when a batch has none, ``anchors.amax(dim=2, keepdim=True) > 0``: the data's background is
@@ -152,6 +152,15 @@ class MATLModule(PoseEvaluationModule):
         mask_in_query = warp_image(mask, query_H_anchor) if mask is not None else None
         return appearance_distance(anchor_in_query, positive, self.appearance_levels, mask_in_query).mean()
 
+    def warp_target(self, target: torch.Tensor, query_H_anchor: torch.Tensor | None) -> torch.Tensor:
+        """``target`` ``(B, 3, S, S)`` (the un-occluded positives) brought into the anchors' frame by the pixel
+        ``query_H_anchor`` ``(B, 3, 3)`` that ``s()`` regressed from the occluded ones, with ``s()``'s own sampler
+        (the target itself without an STN)."""
+        if query_H_anchor is None:
+            return target
+        size = target.shape[-2:]
+        return sample_by_normalised_kornia(target, pixel_to_normalised(query_H_anchor, (size[0], size[1])))
+
     def pair_appearance(self, anchor: torch.Tensor, positive: torch.Tensor, warped: torch.Tensor,
                         query_H_anchor: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """The appearance loss of one anchor per positive under a predicted homography (a scalar): the
@@ -187,17 +196,22 @@ class MATLModule(PoseEvaluationModule):
                              f"for N={self.num_anchors}")
         degenerate_before = self.degenerate_count
         warped_pos, query_H_anchor = self.transform(positive)
+        # an occluded positive (data.occlude) is posed from what is visible, its pose judged on the whole product
+        target = batch.get("positive_target")
+        warped_target = warped_pos if target is None else self.warp_target(target, query_H_anchor)
+        target = positive if target is None else target
         masks = self.anchor_masks(batch) if self.appearance_mask == "foreground" else None
-        loss_app, selected = self.appearance_loss(anchors, warped_pos, masks)
+        loss_app, selected = self.appearance_loss(anchors, warped_target, masks)
         rows = torch.arange(len(anchors), device=anchors.device)
         anchor_star = anchors[rows, selected]
         mask_star = masks[rows, selected] if masks is not None else None
         if self.appearance == "symmetric" and query_H_anchor is not None:
-            loss_app = 0.5 * (loss_app + self.backward_appearance(anchor_star, positive, query_H_anchor, mask_star))
+            loss_app = 0.5 * (loss_app + self.backward_appearance(anchor_star, target, query_H_anchor, mask_star))
         loss_align = None
         if self.align is not None and query_H_anchor is not None:
             aligned = self.align(positive, anchor_star, query_H_anchor, warped_pos)
-            loss_align = self.pair_appearance(anchor_star, positive, aligned.warped, aligned.query_H_anchor,
+            aligned_target = aligned.warped if target is positive else self.warp_target(target, aligned.query_H_anchor)
+            loss_align = self.pair_appearance(anchor_star, target, aligned_target, aligned.query_H_anchor,
                                               mask_star)
         warped_neg = self.transform(negative)[0] if self.stn_on_negative else negative
         emb = self.feature_net(torch.cat([anchor_star, warped_pos, warped_neg]))
@@ -250,10 +264,11 @@ class MATLModule(PoseEvaluationModule):
                                 {"scheduler": self.scheduler_factory(optimizer=stage), "interval": "epoch"}])
 
     # -------------------------------------------------------------- evaluation
-    def build_recognizer(self, gallery: Gallery) -> Recognizer:
+    def build_recognizer(self, gallery: Gallery) -> TensorRecognizer:
         was_training = self.training
         self.eval()
-        rec = Recognizer(self.feature_net, self.stn, gallery.to(self.device), self.anchor_choice, align=self.align)
+        rec = TensorRecognizer(self.feature_net, self.stn, gallery.to(self.device), self.anchor_choice,
+                               align=self.align)
         self.train(was_training)
         return rec
 

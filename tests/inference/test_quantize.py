@@ -27,7 +27,7 @@ from matl.inference.quantize import (
     quantize_option,
     quantize_recognizer,
 )
-from matl.inference.recognizer import QueryGraph, Recognizer
+from matl.inference.recognizer import QueryGraph, TensorRecognizer
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 from tests.inference.test_query_graph import S, gallery, networks
@@ -80,7 +80,7 @@ def test_recognizer_int8_same_nearest_anchor_and_fallbacks() -> None:
     with torch.no_grad():
         identity_stn.regressor.fc2.weight.zero_()
         identity_stn.regressor.fc2.bias.zero_()
-    rec = Recognizer(feature_net, identity_stn, g)
+    rec = TensorRecognizer(feature_net, identity_stn, g)
     assert quantize_recognizer(rec, calibration) is None and rec.quantized is not None
     for batch in (g.images, g.images[5:6]):
         expected = torch.arange(len(g))[5:6] if len(batch) == 1 else torch.arange(len(g))
@@ -88,8 +88,8 @@ def test_recognizer_int8_same_nearest_anchor_and_fallbacks() -> None:
 
     # a random STN and warped queries: an untrained c() leaves margins of ~0.005 between anchors, so the
     # nearest anchor agrees for most queries, and every distance is within DISTANCE_ATOL of the float one
-    float_rec = Recognizer(feature_net, stn, g)
-    rec = Recognizer(feature_net, stn, g)
+    float_rec = TensorRecognizer(feature_net, stn, g)
+    rec = TensorRecognizer(feature_net, stn, g)
     assert quantize_recognizer(rec, calibration) is None
     assert not torch.equal(rec.gallery_features, float_rec.gallery_features)  # re-embedded by the int8 c()
     queries, _ = toy_queries(g.images, 40, seed=3)
@@ -112,13 +112,13 @@ def test_recognizer_int8_same_nearest_anchor_and_fallbacks() -> None:
     assert torch.allclose(rec.embed_queries(queries)[0], float_rec.embed_queries(queries)[0], atol=1e-5)
 
     # gallery="float" keeps the float gallery embeddings
-    kept = Recognizer(feature_net, stn, g)
+    kept = TensorRecognizer(feature_net, stn, g)
     before = kept.gallery_features.clone()
     assert quantize_recognizer(kept, calibration_images(g.images, 64), gallery="float") is None
     assert torch.equal(kept.gallery_features, before)
 
     # no STN: not quantisable, the recognizer stays float and the reason is returned
-    no_stn = Recognizer(feature_net, None, g)
+    no_stn = TensorRecognizer(feature_net, None, g)
     reason = quantize_recognizer(no_stn, calibration_images(g.images, 16))
     assert reason is not None and "spatial transformer" in reason and no_stn.quantized is None
 
@@ -130,7 +130,7 @@ def test_quantize_option_values() -> None:
         quantize_option(OmegaConf.create({"quantize": "fp4"}))
     feature_net, stn = networks()
     g = gallery(feature_net)
-    rec = Recognizer(feature_net, stn, g)
+    rec = TensorRecognizer(feature_net, stn, g)
     assert apply_quantize_option(rec, OmegaConf.create({"quantize": "none"}), lambda: 1 / 0) == {
         "quantize": "none", "quantize_fallback": None}
     assert rec.quantized is None

@@ -10,7 +10,7 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, sample_by_normalised, sample_by_normalised_kornia, warp_image
-from matl.inference.recognizer import CompiledQueryPath, QueryGraph, Recognizer
+from matl.inference.recognizer import CompiledQueryPath, QueryGraph, TensorRecognizer
 from matl.inference.search import nearest
 from matl.models.feature import FeatureNet
 from matl.models.stn import HomographyRegressor, SpatialTransformer
@@ -108,11 +108,11 @@ def test_recognizer_paths_agree() -> None:
     feature_net, stn = networks(1)
     gal = gallery(feature_net)
     queries = warp_image(gal.images[[1, 6, 11, 17]], random_homographies(4, 9, 0.02) @ torch.eye(3))
-    reference = Recognizer(feature_net, stn, gal, fast=False)
-    batched = Recognizer(feature_net, stn, gal)
-    single = Recognizer(feature_net, stn, gal)
+    reference = TensorRecognizer(feature_net, stn, gal, fast=False)
+    batched = TensorRecognizer(feature_net, stn, gal)
+    single = TensorRecognizer(feature_net, stn, gal)
     ref, fast = reference(queries), batched(queries)  # 4 <= compiled_max_batch: compiled
-    eager = Recognizer(feature_net, stn, gal, compiled_max_batch=0)(queries)
+    eager = TensorRecognizer(feature_net, stn, gal, compiled_max_batch=0)(queries)
     one = [single(queries[i:i + 1]) for i in range(len(queries))]
     assert single._compiled is not None and single._compiled.failure is None and single._compiled._graph is not None
     for pred in (fast, eager):
@@ -129,13 +129,13 @@ def test_recognizer_paths_agree() -> None:
 def test_compiled_path_follows_weight_changes_and_modes() -> None:
     feature_net, stn = networks(2)
     gal = gallery(feature_net)
-    rec = Recognizer(feature_net, stn, gal)
+    rec = TensorRecognizer(feature_net, stn, gal)
     query = textured_planes(1, S, 3)
     before = rec(query).query_H_anchor
     with torch.no_grad():
         stn.regressor.fc2.bias.add_(0.05)  # in place, as an optimiser step
     after = rec(query).query_H_anchor
-    ref = Recognizer(feature_net, stn, gal, fast=False)(query).query_H_anchor
+    ref = TensorRecognizer(feature_net, stn, gal, fast=False)(query).query_H_anchor
     assert not torch.allclose(before, after, atol=1e-3) and torch.allclose(after, ref, rtol=1e-5, atol=1e-4)
     # building the graph leaves the networks' modes alone
     stn.train()
@@ -167,8 +167,8 @@ def test_matl_fast_networks_take_the_same_fast_paths(tmp_path: Path) -> None:
     feature_net, stn = feature_net.eval(), stn.eval()
     gal = gallery(feature_net)
     queries = warp_image(gal.images[[0, 5, 10]], random_homographies(3, 4, 0.02))
-    ref = Recognizer(feature_net, stn, gal, fast=False)(queries)
-    single = Recognizer(feature_net, stn, gal)
+    ref = TensorRecognizer(feature_net, stn, gal, fast=False)(queries)
+    single = TensorRecognizer(feature_net, stn, gal)
     one = [single(queries[i:i + 1]) for i in range(len(queries))]
     assert single._compiled is not None and single._compiled.failure is None
     assert torch.equal(torch.cat([p.gallery_index for p in one]), ref.gallery_index)

@@ -12,7 +12,7 @@ from omegaconf import open_dict
 from matl.data.gallery import Gallery
 from matl.geometry import HomographySampler, corner_error_px, warp_image
 from matl.inference.options import configure_recognizer
-from matl.inference.recognizer import Prediction, Recognizer
+from matl.inference.recognizer import Prediction, TensorRecognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.search import ExactSearch, FaissSearch, nearest
 from matl.models.feature import FeatureNet
@@ -145,7 +145,7 @@ def test_recognizer_rebuilds_its_search_when_features_change() -> None:
     gallery = Gallery(images, torch.arange(6), torch.arange(6), torch.zeros(6, dtype=torch.long),
                       torch.eye(3, dtype=torch.float64).repeat(6, 1, 1), [str(i) for i in range(6)],
                       [str(i) for i in range(6)])
-    rec = Recognizer(FeatureNet(), None, gallery)
+    rec = TensorRecognizer(FeatureNet(), None, gallery)
     rec.gallery_features = torch.eye(6, 128)[torch.tensor([5, 4, 3, 2, 1, 0])]
     assert torch.equal(rec.search.features, rec.gallery_features)
     faiss = pytest.importorskip("faiss")
@@ -172,10 +172,11 @@ def test_configure_recognizer_applies_search_and_refine(tmp_path: Path) -> None:
     gallery = Gallery(images, torch.arange(4), torch.arange(4), torch.zeros(4, dtype=torch.long),
                       torch.eye(3, dtype=torch.float64).repeat(4, 1, 1), list("abcd"), list("abcd"))
     cfg = compose_config("eval", ["refine=true", "refiner.iterations=2"], tmp_path)
-    rec, info = configure_recognizer(Recognizer(FeatureNet(), None, gallery), compose_config("eval", [], tmp_path))
-    assert info == {"search": "exact", "refine": False, "refiner": None} and isinstance(rec, Recognizer)
+    rec, info = configure_recognizer(TensorRecognizer(FeatureNet(), None, gallery),
+                                     compose_config("eval", [], tmp_path))
+    assert info == {"search": "exact", "refine": False, "refiner": None} and isinstance(rec, TensorRecognizer)
     with pytest.raises(MatlError, match="no STN"):  # TL: nothing to refine
-        configure_recognizer(Recognizer(FeatureNet(), None, gallery), cfg)
+        configure_recognizer(TensorRecognizer(FeatureNet(), None, gallery), cfg)
     fixed = FixedRecognizer(gallery, torch.arange(4), torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
     rec, info = configure_recognizer(fixed, cfg)  # any recognizer with a pose (e.g. a baseline) refines
     assert isinstance(rec, RefinedRecognizer) and info["refine"] and info["refiner"]["iterations"] == 2
@@ -186,7 +187,7 @@ def test_configure_recognizer_applies_search_and_refine(tmp_path: Path) -> None:
     with open_dict(faiss_cfg):
         faiss_cfg.search.index = "lsh"
     with pytest.raises(MatlError, match=r"search\.index"):
-        configure_recognizer(Recognizer(FeatureNet(), None, gallery), faiss_cfg)
+        configure_recognizer(TensorRecognizer(FeatureNet(), None, gallery), faiss_cfg)
 
 
 def test_predict_with_refinement_and_faiss(tmp_path: Path, cache_dir: Path) -> None:

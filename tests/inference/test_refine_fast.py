@@ -211,12 +211,12 @@ class _OneMissing:
 
 def test_refined_matl_recognizer_composes_the_pose_once_and_an_unmatched_query_keeps_its_answer() -> None:
     from matl.geometry import compose_query_H_canon
-    from matl.inference.recognizer import Recognizer
+    from matl.inference.recognizer import TensorRecognizer
     from tests.inference.test_query_graph import gallery, networks
 
     feature_net, stn = networks()
     g = gallery(feature_net)
-    recognizer = Recognizer(feature_net, stn, g)
+    recognizer = TensorRecognizer(feature_net, stn, g)
     queries = g.images[[1, 6, 11]]
     assert recognizer(queries, pose=False).query_H_canon is None
     plain = recognizer(queries)

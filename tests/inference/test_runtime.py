@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from matl.geometry import warp_image
 from matl.inference import runtime as runtime_module
-from matl.inference.recognizer import Recognizer
+from matl.inference.recognizer import TensorRecognizer
 from matl.inference.runtime import OnnxRuntimeQueryPath, apply_runtime, apply_runtime_option, runtime_option
 from matl.inference.search import ExactSearch, nearest
 from matl.utils.errors import MatlError
@@ -29,8 +29,8 @@ def test_onnxruntime_path_agrees_with_torch(input_norm: str) -> None:
     feature_net, stn = networks(1, input_norm=input_norm)
     gal = gallery(feature_net)
     queries = queries_of(gal)
-    reference = Recognizer(feature_net, stn, gal)
-    onnx = Recognizer(feature_net, stn, gal)
+    reference = TensorRecognizer(feature_net, stn, gal)
+    onnx = TensorRecognizer(feature_net, stn, gal)
     assert apply_runtime(onnx, "onnxruntime") is None and isinstance(onnx.onnx, OnnxRuntimeQueryPath)
     for batch in (queries, *queries.split(1)):  # a batch, and one query at a time
         ref, out = reference(batch), onnx(batch)
@@ -49,10 +49,10 @@ def test_onnxruntime_path_keeps_the_degeneracy_guard() -> None:
     with torch.no_grad():
         stn.regressor.fc2.bias.copy_(torch.tensor([-1.0, 0, 0, 0, -1.0, 0, 0, 0]))  # the zero matrix: degenerate
     gal = gallery(feature_net)
-    rec = Recognizer(feature_net, stn, gal)
+    rec = TensorRecognizer(feature_net, stn, gal)
     apply_runtime(rec, "onnxruntime")
     out = rec(queries_of(gal))
-    ref = Recognizer(feature_net, stn, gal)(queries_of(gal))
+    ref = TensorRecognizer(feature_net, stn, gal)(queries_of(gal))
     assert out.degenerate.all() and ref.degenerate.all()
     assert torch.allclose(out.query_H_anchor, torch.eye(3).expand(5, 3, 3))
 
@@ -60,7 +60,7 @@ def test_onnxruntime_path_keeps_the_degeneracy_guard() -> None:
 def test_onnxruntime_path_follows_weight_changes_and_thread_counts() -> None:
     feature_net, stn = networks(3)
     gal = gallery(feature_net)
-    rec = Recognizer(feature_net, stn, gal)
+    rec = TensorRecognizer(feature_net, stn, gal)
     apply_runtime(rec, "onnxruntime")
     query = textured_planes(1, S, 3)
     before = rec(query).query_H_anchor
@@ -89,7 +89,7 @@ def test_without_onnxruntime_torch_answers(monkeypatch: pytest.MonkeyPatch) -> N
     monkeypatch.setattr(export, "require_onnxruntime", missing)
     feature_net, stn = networks(4)
     gal = gallery(feature_net)
-    rec = Recognizer(feature_net, stn, gal)
+    rec = TensorRecognizer(feature_net, stn, gal)
     record = apply_runtime_option(rec, OmegaConf.create({"runtime": "onnxruntime"}))
     assert record["runtime"] == "torch" and "onnxruntime is not installed" in record["runtime_fallback"]
     assert rec.onnx is None and rec(queries_of(gal)).gallery_index.shape == (5,)
@@ -102,7 +102,7 @@ def test_runtime_option_and_unsupported_recognizers() -> None:
         runtime_option(OmegaConf.create({"runtime": "tensorrt"}))
     feature_net, stn = networks(5)
     gal = gallery(feature_net)
-    no_stn = Recognizer(feature_net, None, gal)
+    no_stn = TensorRecognizer(feature_net, None, gal)
     assert "not an STN" in apply_runtime(no_stn, "onnxruntime") and no_stn.onnx is None
     assert "applies to MATL's recognizer" in apply_runtime(object(), "onnxruntime")
     stn.regressor.train()  # no batch norm here: training mode changes nothing, and the path still applies

@@ -20,7 +20,7 @@ from matl.geometry import (
     transfer_points,
     warp_image,
 )
-from matl.inference.recognizer import Recognizer
+from matl.inference.recognizer import TensorRecognizer
 from matl.losses import TripletLoss
 from matl.models.align import SQUARE, AlignmentStage, square_to_quad
 from matl.models.checkpoint import build_model
@@ -101,8 +101,8 @@ def test_zero_initialised_stage_leaves_the_recognizers_pose_unchanged() -> None:
     feature, stn = FeatureNet().eval(), random_stn()
     queries = warp_image(anchors[:, 1], shift(1.5, -1.0).expand(P, 3, 3))
     for fast in (True, False):  # the compiled path (batches up to 8) and the forward path
-        plain = Recognizer(feature, stn, gallery, fast=fast)(queries)
-        aligned = Recognizer(feature, stn, gallery, fast=fast, align=AlignmentStage(S).eval())(queries)
+        plain = TensorRecognizer(feature, stn, gallery, fast=fast)(queries)
+        aligned = TensorRecognizer(feature, stn, gallery, fast=fast, align=AlignmentStage(S).eval())(queries)
         assert torch.equal(plain.gallery_index, aligned.gallery_index)
         assert torch.equal(plain.query_H_anchor, aligned.query_H_anchor)
         assert torch.equal(plain.query_H_canon, aligned.query_H_canon)
@@ -175,8 +175,8 @@ def test_recognizer_aligns_to_the_searched_anchor_and_keeps_recognition() -> Non
     stage = AlignmentStage(S, iterations=2).eval()
     force_offsets(stage, torch.full((4, 2), 0.03))
     queries = warp_image(anchors[:, 2], shift(1.0, 0.5).expand(P, 3, 3))
-    plain = Recognizer(feature, stn, gallery)(queries)
-    aligned = Recognizer(feature, stn, gallery, align=stage)(queries)
+    plain = TensorRecognizer(feature, stn, gallery)(queries)
+    aligned = TensorRecognizer(feature, stn, gallery, align=stage)(queries)
     for name in ("gallery_index", "object_index", "anchor_index", "distance", "warped", "degenerate", "features"):
         assert torch.equal(getattr(plain, name), getattr(aligned, name)), name
     expected = stage.infer(queries, gallery.images[plain.gallery_index], plain.query_H_anchor, plain.warped)

@@ -10,7 +10,7 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, corner_error_px, pixel_to_normalised, warp_image
-from matl.inference.recognizer import Recognizer, nearest
+from matl.inference.recognizer import TensorRecognizer, nearest
 from matl.models.feature import FeatureNet
 from matl.models.stn import STNOutput
 
@@ -42,7 +42,7 @@ def test_recognizer_composes_pose_with_selected_anchor() -> None:
     # the query is plane 1 seen as anchor 2 shifted by (2, 1): query_H_anchor is that shift
     shift = torch.tensor([[1.0, 0, 2.0], [0, 1.0, 1.0], [0, 0, 1.0]], dtype=torch.float64)[None]
     query = warp_image(anchors[1:2, 2], shift.float())
-    rec = Recognizer(FeatureNet(), OracleSTN(shift), gallery)
+    rec = TensorRecognizer(FeatureNet(), OracleSTN(shift), gallery)
     # make the feature net an exact matcher: features of the warped query equal its anchor's
     rec.gallery_features = rec.feature_net(gallery.images)
     pred = rec(query)
