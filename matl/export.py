@@ -18,7 +18,7 @@ kornia needed), ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch
 ``onnx`` (``.onnx``, opset 17, checked in onnxruntime's CPUExecutionProvider; both dependencies of matl).
 Every format has a dynamic batch axis. The query network re-expresses the STN's forward pass with
 plain torch ops (``grid_sample`` on a precomputed grid, the degeneracy guard as ``torch.where``;
-:class:`matl.inference.recognizer.QueryGraph`) so that tracing records no Python branch; for ONNX, which
+:class:`matl.models.recognizer.QueryGraph`) so that tracing records no Python branch; for ONNX, which
 has no SVD, the guard's singular values are computed in closed form
 (:func:`matl.inference.export.svdvals_3x3`). The export is checked against the eager model on every
 export (tolerance ``tolerance``).

@@ -4,7 +4,7 @@
 
 Random unit embeddings of 128 dimensions (as ``matl.bench``'s gallery scaling); each query is a gallery entry
 plus a little noise, so it has a true nearest neighbour. In one process the two paths alternate query by query
-(:func:`matl.inference.search.nearest`, what batches use, and :meth:`ExactSearch.search` with one query, the
+(:func:`matl.models.search.nearest`, what batches use, and :meth:`ExactSearch.search` with one query, the
 compiled pass), so the machine's drift falls on both alike; they must return the same index. Prints the median
 time of each per gallery size.
 """
@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from matl.inference.search import ExactSearch, nearest
+from matl.models.search import ExactSearch, nearest
 
 DIM = 128
 

@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 
 from matl.data.gallery import Gallery
 from matl.geometry import compose_query_H_canon
-from matl.inference.recognizer import Prediction
+from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 
 
@@ -24,7 +24,7 @@ class BaselinePrediction(Prediction):
 
 
 class BaselineRecognizer:
-    """Makes a keypoint matcher answer like :class:`matl.inference.recognizer.TensorRecognizer`.
+    """Makes a keypoint matcher answer like :class:`matl.models.recognizer.TensorRecognizer`.
 
     The matcher indexes the gallery's anchor images once; ``match`` gives the gallery image with
     most RANSAC inliers and ``query_H_anchor``. The pose is ``query_H_anchor @ anchor_H_canon`` of

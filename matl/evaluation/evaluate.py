@@ -23,10 +23,10 @@ from matl.data.gallery import Gallery
 from matl.geometry import corner_error_px, frobenius_pose_error
 from matl.inference.options import configure_recognizer
 from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
-from matl.inference.recognizer import Prediction
 from matl.inference.runtime import apply_runtime_option, runtime_option
 from matl.metrics import METRIC_NAMES, pose_metrics
 from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
+from matl.models.prediction import Prediction
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
 from matl.utils.io import write_csv, write_json

@@ -164,7 +164,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     from matl.inference.options import search_name
     from matl.inference.refine import RefinedRecognizer
     from matl.inference.runtime import apply_runtime_option
-    from matl.inference.search import ExactSearch
+    from matl.models.search import ExactSearch
 
     warmup, count = int(options.query_warmup), int(options.queries)
     queries = _query_images(datamodule, warmup + count, device)
@@ -426,7 +426,7 @@ def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, c
     The model is exported to a temporary folder (checked against the eager model as every export), the
     gallery embedded by the exported gallery network, and the query timed as ``query_ms.matl``: the same
     queries and warm-up, at each thread count (onnxruntime's intra-op threads, and torch's for the rest),
-    kept at its fastest. The timed call is a :class:`~matl.inference.recognizer.TensorRecognizer` call whose
+    kept at its fastest. The timed call is a :class:`~matl.models.recognizer.TensorRecognizer` call whose
     networks step (``embed_queries``) is the onnxruntime session: the exact gallery search (torch) on
     the ONNX embeddings and the pose are the eager query's own code. Without onnxruntime, on a GPU run
     or for a model without an embedding network, ``query_ms`` has no ``matl_onnx`` and
@@ -594,7 +594,7 @@ def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: 
                     device: torch.device, threads: int | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Search latency per gallery size, exact and (when installed) FAISS; see the module docstring."""
     from matl.inference.options import search_name
-    from matl.inference.search import ExactSearch, FaissSearch, require_faiss
+    from matl.models.search import ExactSearch, FaissSearch, require_faiss
 
     dim = int(getattr(model.feature_net, "embedding_dim", 0)) or int(
         model.feature_net(torch.zeros(1, 3, model.image_size, model.image_size, device=device)).shape[1])

@@ -432,8 +432,8 @@ def method_recognizer(method: str, cfg: DictConfig, ckpt: Path, threshold: Any, 
         node.refiner = cfg.refiner
         node.foreground = cfg.get("foreground")
         return recognizer_from_config(node)
-    from matl.baselines.files import KeypointFileRecognizer
     from matl.baselines.recognizer import build_baseline
+    from matl.inference.baseline_files import KeypointFileRecognizer
 
     size, num_anchors = checkpoint_info(load_checkpoint(ckpt), ckpt)
     return KeypointFileRecognizer(build_baseline(cfg.baselines[method], method), method, size, num_anchors,

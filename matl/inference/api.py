@@ -65,12 +65,13 @@ from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
-from matl.inference.recognizer import Prediction, TensorRecognizer, embed
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import RUNTIMES, runtime_path
-from matl.inference.search import ExactSearch, FaissSearch, SearchFactory
 from matl.inference.verify import CandidatePose, Verification, verify_candidates
 from matl.models.checkpoint import load_embedding_model
+from matl.models.prediction import Prediction
+from matl.models.recognizer import TensorRecognizer, embed
+from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
 
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model", "shipped_checkpoint"]
@@ -251,7 +252,7 @@ class Recognizer:
         runtime: ``onnxruntime`` (default: ``s()``'s regressor and ``c()`` in onnxruntime, ``s()``'s warps in
             OpenCV, for CPU queries; :mod:`matl.inference.runtime`) or ``torch``. Falls back to torch, saying
             why in ``options()["runtime_fallback"]``, where it does not apply (a GPU, another model).
-        search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.inference.search`).
+        search: ``exact`` (default), ``faiss`` or a search factory (:mod:`matl.models.search`).
         threshold: ``auto`` (calibrated on the gallery), a distance, or None (closed set: every
             query gets the nearest product).
         open_set_statistic: ``verify``, ``verify_or_ratio``, ``ratio`` or ``distance`` (see the module docstring).

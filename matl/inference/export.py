@@ -36,12 +36,12 @@ _SQUARINGS = 24
 
 
 def __getattr__(name: str) -> Any:
-    """``QueryNet``: :class:`matl.inference.recognizer.QueryGraph`, the ``s()`` + ``c()`` graph that
+    """``QueryNet``: :class:`matl.models.recognizer.QueryGraph`, the ``s()`` + ``c()`` graph that
     ``TensorRecognizer`` itself compiles for single queries, so the exported network and the in-process
     fast path are one piece of code. Imported on first use (matl.models loads kornia; a bad option
     of the CLI is reported before that)."""
     if name == "QueryNet":
-        from matl.inference.recognizer import QueryGraph
+        from matl.models.recognizer import QueryGraph
 
         return QueryGraph
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -312,7 +312,7 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
         raise MatlError(f"format={fmt} is invalid: use {' or '.join(FORMATS)}")
     if fmt == "onnx":
         require_onnxruntime()  # before any work
-    from matl.inference.recognizer import QueryGraph
+    from matl.models.recognizer import QueryGraph
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)

@@ -24,8 +24,8 @@ from matl.geometry import transfer_points, warp_image
 from matl.inference.api import Match, Recognizer
 from matl.inference.gallery import report_skipped
 from matl.inference.quantize import quantize_option
-from matl.inference.recognizer import Prediction
 from matl.inference.runtime import runtime_option
+from matl.models.prediction import Prediction
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
 from matl.utils.instantiate import instantiate_node
@@ -245,7 +245,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
             cfg.ckpt = resolve_checkpoint_keyword(cfg.ckpt)
     baseline = None
     if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
-        from matl.baselines.files import baseline_recognizer_from_config
+        from matl.inference.baseline_files import baseline_recognizer_from_config
         from matl.utils.runs import hydra_choice
 
         baseline = hydra_choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]

@@ -23,7 +23,7 @@ from torch import nn
 from matl.data.gallery import Gallery
 from matl.data.image_files import GalleryFiles, ImageFileError, fit_to_model, load_image_file, scan_gallery
 from matl.geometry import anchor_H_canon, warp_image
-from matl.inference.recognizer import embed
+from matl.models.recognizer import embed
 from matl.utils.errors import MatlError
 from matl.utils.io import atomic_write
 

@@ -1,7 +1,7 @@
 """Inference options shared by ``matl.eval``, ``matl.predict`` and ``matl.bench``: ``search=`` and ``refine=``.
 
 * ``search=exact|faiss`` (config group ``conf/search/``): the gallery search backend of an embedding
-  model's recognizer (:mod:`matl.inference.search`).
+  model's recognizer (:mod:`matl.models.search`).
 * ``refine=true`` with the ``refiner`` node (``conf/refiner/``: ``fast`` by default, or ``photometric``):
   wrap the recognizer in :class:`matl.inference.refine.RefinedRecognizer`.
 """
@@ -13,7 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from matl.inference.recognizer import Prediction
+from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 
 __all__ = ["configure_recognizer", "search_name"]

@@ -9,9 +9,9 @@ mode (``torch.ao.quantization.quantize_fx``; torch 2.13 no longer ships PT2E's
   regressor (both of its applications) and of the feature net ``c()``;
 * kept in float32: the warps (``grid_sample``), the homography algebra (composition, degeneracy
   guard, pixel conversion), the global max pool and the L2 normalisation of the embedding, and the
-  gallery search and pose (unchanged, :class:`matl.inference.recognizer.TensorRecognizer`).
+  gallery search and pose (unchanged, :class:`matl.models.recognizer.TensorRecognizer`).
 
-The result is one TorchScript graph (:class:`~matl.inference.recognizer.QueryGraph` with the quantised
+The result is one TorchScript graph (:class:`~matl.models.recognizer.QueryGraph` with the quantised
 networks swapped in; traced, frozen, ``optimize_for_inference``), built once per recognizer by
 :func:`quantize_recognizer` and used for every CPU float32 query batch. Activation ranges are
 calibrated on training-distribution images (the datamodule's training positives, or gallery images
@@ -35,8 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from matl.inference.recognizer import QueryGraph, weights_key
 from matl.models.feature import FeatureNet
+from matl.models.recognizer import QueryGraph, weights_key
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 
 __all__ = ["QUANTIZE_CHOICES", "QuantizedQueryPath", "apply_quantize_option", "calibration_images",
@@ -171,7 +171,7 @@ def _qconfig_mapping(core: nn.Module) -> Any:
 class QuantizedQueryPath:
     """``c(s(query))`` with int8 convolutions and linears, as one frozen TorchScript graph.
 
-    Returns :class:`~matl.inference.recognizer.QueryGraph`'s outputs ``(embedding, query_H_anchor (pixel),
+    Returns :class:`~matl.models.recognizer.QueryGraph`'s outputs ``(embedding, query_H_anchor (pixel),
     degenerate, warped)`` for any CPU float32 batch. The graph holds quantised copies of the weights:
     the path is stale once the float networks change (``matches`` compares version counters).
 
@@ -241,7 +241,7 @@ class QuantizedQueryPath:
 
 def quantize_recognizer(recognizer: Any, calibration: torch.Tensor | Iterable[torch.Tensor],
                         gallery: str = "int8") -> str | None:
-    """Give a :class:`~matl.inference.recognizer.TensorRecognizer` the int8 query path, in place.
+    """Give a :class:`~matl.models.recognizer.TensorRecognizer` the int8 query path, in place.
 
     Args:
         recognizer: MATL's recognizer (``feature_net``, ``stn``, ``gallery``, ``gallery_features``).

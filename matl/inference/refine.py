@@ -49,7 +49,8 @@ from matl.geometry import (
     pixel_to_normalised,
     sample_by_normalised,
 )
-from matl.inference.recognizer import Prediction, TensorRecognizer
+from matl.models.prediction import Prediction
+from matl.models.recognizer import TensorRecognizer
 
 __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
 
@@ -300,7 +301,7 @@ class RefinedRecognizer:
     """A recognizer whose poses are refined against the anchor it selected (``refine=true``).
 
     Wraps anything returning a :class:`Prediction` with ``query_H_anchor`` and ``gallery_index``
-    (MATL's :class:`~matl.inference.recognizer.TensorRecognizer`, the STN classifier's, a keypoint baseline's);
+    (MATL's :class:`~matl.models.recognizer.TensorRecognizer`, the STN classifier's, a keypoint baseline's);
     recognition is unchanged, ``query_H_anchor`` and ``query_H_canon`` are replaced. Queries without
     a match (``gallery_index == -1``) or without a pose keep their prediction. A refiner whose ``start``
     is ``stn`` refines ``s()``'s pose: the recognizer's alignment stage (``model.align``), whose job the

@@ -8,7 +8,7 @@ ONNX graph in onnxruntime and does the rest of ``s()`` outside any graph:
 * the regressor (an ``(B, S, S, 3)`` channels-last graph: the warps below hand it images in that layout)
   and ``c()`` (``(B, 3, S, S)``, ``FeatureNet.forward_graph``) are exported from the model's own modules
   in memory (:func:`matl.inference.export.onnx_bytes`) when the path is first used, and again whenever a
-  weight changes (version counters, as :class:`~matl.inference.recognizer.CompiledQueryPath`);
+  weight changes (version counters, as :class:`~matl.models.recognizer.CompiledQueryPath`);
 * ``s()``'s loop (:func:`matl.models.stn.regress_homography`: regress, warp, re-regress, compose), its
   degeneracy guard and the final warp run per query in NumPy (float64 matrices) and OpenCV:
   ``cv2.warpPerspective`` (bilinear, zeros outside) of the channels-last query by
@@ -33,8 +33,8 @@ import torch
 from torch import nn
 
 from matl.geometry import degenerate_matrix, normalisation_matrices, sample_by_pixels
-from matl.inference.recognizer import MODAL_LAYERS, weights_key
 from matl.models.feature import FeatureNet
+from matl.models.recognizer import MODAL_LAYERS, weights_key
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 
 __all__ = ["RUNTIMES", "OnnxRuntimeQueryPath", "apply_runtime", "apply_runtime_option", "runtime_option",
@@ -91,7 +91,7 @@ class OnnxRuntimeQueryPath:
 
     ``path(queries (B, 3, S, S) CPU float32) -> (embedding (B, D), query_H_anchor (B, 3, 3) float32 pixel,
     degenerate (B,) bool, warped (B, 3, S, S))``, the outputs of
-    :meth:`~matl.inference.recognizer.TensorRecognizer.embed_queries`; None when the networks no longer qualify or
+    :meth:`~matl.models.recognizer.TensorRecognizer.embed_queries`; None when the networks no longer qualify or
     the graphs could not be built (``failure`` says why).
 
     Args:

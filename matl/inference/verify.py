@@ -182,7 +182,7 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     them again, posed by ``candidate_pose``.
 
     Args:
-        recognizer: a :class:`matl.inference.recognizer.TensorRecognizer` (its networks, gallery and features).
+        recognizer: a :class:`matl.models.recognizer.TensorRecognizer` (its networks, gallery and features).
         queries: ``(Q, 3, S, S)`` model-size queries on the recognizer's device.
         top_k: candidates per query (>= 1).
         verify_max: the largest ``1 - ZNCC`` that verifies.

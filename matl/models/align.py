@@ -21,7 +21,7 @@ half-width 0.5 around its own corner, so the quadrilateral is always strictly co
 
 Training (``MATLModule``): the anchor is the one Eq. 3 selected, the loss is the appearance loss of
 the anchor against the query warped by the final composed homography (no pose labels). Inference
-(:class:`matl.inference.recognizer.TensorRecognizer`): the anchor is the nearest gallery anchor the search
+(:class:`matl.models.recognizer.TensorRecognizer`): the anchor is the nearest gallery anchor the search
 returned; the stage's ``query_H_anchor`` replaces the STN's in the Prediction.
 """
 

@@ -1,7 +1,7 @@
 """What every trained matl model shares: evaluation against the gallery, metric logging, optimisers.
 
-A subclass provides ``build_recognizer(gallery)`` (anything that maps a query batch to a
-:class:`~matl.inference.recognizer.Prediction`) and its training step; validation and test then run
+A subclass provides ``build_recognizer(gallery)`` (a :class:`~matl.models.prediction.QueryRecognizer`: maps a
+query batch to a :class:`~matl.models.prediction.Prediction`) and its training step; validation and test then run
 the metrics of docs/design.md the same way for every model, so their numbers are comparable.
 """
 
@@ -15,8 +15,8 @@ import lightning as L
 import torch
 
 from matl.data.gallery import Gallery
-from matl.inference.recognizer import Prediction
 from matl.metrics import pose_metrics
+from matl.models.prediction import QueryRecognizer
 
 #: val/score = sum of weight x metric over the metrics a model has (a model without pose has NaN pose
 #: metrics; they drop out). Recognition and 5-px pose accuracy count alike: see docs/decisions.md.
@@ -62,11 +62,11 @@ class PoseEvaluationModule(L.LightningModule):
         if unknown or not self.score_weights:
             raise ValueError(f"model.score_weights: unknown or no metric {unknown}; use some of {known}")
         # held outside the module tree: its gallery features must not end up in checkpoints
-        self._eval_cache: dict[str, Callable[[torch.Tensor], Prediction]] = {}
+        self._eval_cache: dict[str, QueryRecognizer] = {}
         self.eval_degenerate = 0
         self.run_config: dict | None = None  # the run's resolved Hydra config, saved into checkpoints
 
-    def build_recognizer(self, gallery: Gallery) -> Callable[[torch.Tensor], Prediction]:
+    def build_recognizer(self, gallery: Gallery) -> QueryRecognizer:
         raise NotImplementedError
 
     # -------------------------------------------------------------- evaluation

@@ -80,7 +80,7 @@ class FeatureNet(nn.Module):
         return F.normalize(x, dim=-1) if self.normalize else x
 
     def forward_graph(self, images: torch.Tensor) -> torch.Tensor:
-        """``forward`` for a traced inference graph (:class:`matl.inference.recognizer.QueryGraph`): the same
+        """``forward`` for a traced inference graph (:class:`matl.models.recognizer.QueryGraph`): the same
         ops, except the global max pool as ``amax``, the same values without the index search (4x
         faster on the dense map a frozen TorchScript graph hands it; no backward is needed there)."""
         x = self.pool(F.relu(self.conv1(self.input_norm(images))))

@@ -18,11 +18,11 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import pixel_to_normalised, sample_by_normalised_kornia, warp_image
-from matl.inference.recognizer import TensorRecognizer
 from matl.losses import MultiAnchorAppearanceLoss, appearance_distance
 from matl.models.align import AlignmentStage
 from matl.models.evaluation import PoseEvaluationModule
 from matl.models.feature import FeatureNet
+from matl.models.recognizer import TensorRecognizer
 from matl.models.stn import SpatialTransformer
 from matl.utils.errors import MatlError, NonFiniteLossError
 
@@ -55,7 +55,7 @@ class MATLModule(PoseEvaluationModule):
             the appearance loss of the final homography (``appearance`` and ``appearance_mask`` as for
             ``s()``) is added to ``s()``'s own: ``loss = metric + lam * (L_app(s) + L_app(stage))``.
             Recognition still uses ``c(s(query))``; the stage runs after the search
-            (:class:`~matl.inference.recognizer.TensorRecognizer`).
+            (:class:`~matl.models.recognizer.TensorRecognizer`).
         appearance_mask: ``none`` (paper) or ``foreground`` (beyond the paper): every appearance term
             is averaged over the anchor's foreground only, ``batch["anchor_masks"]`` ``(B, N, 1, S, S)``
             (when a batch has none, ``anchors.amax(dim=2, keepdim=True) > 0``: the data's background is

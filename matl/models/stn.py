@@ -12,11 +12,11 @@ calls it with its own regressor and warp:
 
 * ``SpatialTransformer.forward`` (training): the regressor module and kornia's warp
   (:func:`matl.geometry.sample_by_normalised_kornia`, whose rounding the training numbers are).
-* ``SpatialTransformer.infer`` (inference, used by :class:`matl.inference.recognizer.TensorRecognizer`):
+* ``SpatialTransformer.infer`` (inference, used by :class:`matl.models.recognizer.TensorRecognizer`):
   ``HomographyRegressor.infer`` (channels-last tensors, oneDNN convolutions, vectorised max pools)
   and :func:`matl.geometry.sample_by_normalised` on a cached grid, for a batch of one query at a few
   milliseconds; the same outputs as ``forward`` up to float rounding. See docs/speed.md.
-* :class:`matl.inference.recognizer.QueryGraph` (traced, exported, and with int8 layers in
+* :class:`matl.models.recognizer.QueryGraph` (traced, exported, and with int8 layers in
   :mod:`matl.inference.quantize`): its own regressor callable and a grid held as a buffer.
 """
 

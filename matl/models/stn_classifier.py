@@ -30,10 +30,10 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import check_images, compose_query_H_canon
-from matl.inference.recognizer import Prediction
 from matl.losses import appearance_distance
 from matl.models.evaluation import PoseEvaluationModule
 from matl.models.feature import FeatureNet
+from matl.models.prediction import Prediction
 from matl.models.stn import SpatialTransformer
 from matl.utils.errors import NonFiniteLossError
 

@@ -263,8 +263,8 @@ def test_benchmark_table_has_a_row_per_condition_and_a_column_per_method() -> No
 
 def test_keypoint_baseline_on_files_frames_like_predict(tmp_path: Path) -> None:
     """predict's baseline path: the enrolled files framed by enrol_gallery, the pose back in file pixels."""
-    from matl.baselines.files import KeypointFileRecognizer
     from matl.baselines.sift import SiftRansacMatcher
+    from matl.inference.baseline_files import KeypointFileRecognizer
     from matl.inference.files import predict_files
 
     cs = textured_set()

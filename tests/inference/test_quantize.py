@@ -27,7 +27,7 @@ from matl.inference.quantize import (
     quantize_option,
     quantize_recognizer,
 )
-from matl.inference.recognizer import QueryGraph, TensorRecognizer
+from matl.models.recognizer import QueryGraph, TensorRecognizer
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 from tests.inference.test_query_graph import S, gallery, networks

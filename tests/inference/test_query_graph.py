@@ -10,9 +10,9 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, sample_by_normalised, sample_by_normalised_kornia, warp_image
-from matl.inference.recognizer import CompiledQueryPath, QueryGraph, TensorRecognizer
-from matl.inference.search import nearest
 from matl.models.feature import FeatureNet
+from matl.models.recognizer import CompiledQueryPath, QueryGraph, TensorRecognizer
+from matl.models.search import nearest
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes

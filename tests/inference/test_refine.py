@@ -12,10 +12,11 @@ from omegaconf import open_dict
 from matl.data.gallery import Gallery
 from matl.geometry import HomographySampler, corner_error_px, warp_image
 from matl.inference.options import configure_recognizer
-from matl.inference.recognizer import Prediction, TensorRecognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
-from matl.inference.search import ExactSearch, FaissSearch, nearest
 from matl.models.feature import FeatureNet
+from matl.models.prediction import Prediction
+from matl.models.recognizer import TensorRecognizer
+from matl.models.search import ExactSearch, FaissSearch, nearest
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes, write_tiny_checkpoint

@@ -11,8 +11,8 @@ from omegaconf import OmegaConf
 from matl.data.gallery import Gallery
 from matl.geometry import HomographySampler, corner_error_px, warp_image
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.recognizer import Prediction
 from matl.inference.refine import RefinedRecognizer
+from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 from tests.inference.test_refine import FixedRecognizer
 from tests.speed_helpers import textured_planes
@@ -211,7 +211,7 @@ class _OneMissing:
 
 def test_refined_matl_recognizer_composes_the_pose_once_and_an_unmatched_query_keeps_its_answer() -> None:
     from matl.geometry import compose_query_H_canon
-    from matl.inference.recognizer import TensorRecognizer
+    from matl.models.recognizer import TensorRecognizer
     from tests.inference.test_query_graph import gallery, networks
 
     feature_net, stn = networks()

@@ -9,9 +9,9 @@ from omegaconf import OmegaConf
 
 from matl.geometry import warp_image
 from matl.inference import runtime as runtime_module
-from matl.inference.recognizer import TensorRecognizer
 from matl.inference.runtime import OnnxRuntimeQueryPath, apply_runtime, apply_runtime_option, runtime_option
-from matl.inference.search import ExactSearch, nearest
+from matl.models.recognizer import TensorRecognizer
+from matl.models.search import ExactSearch, nearest
 from matl.utils.errors import MatlError
 from tests.inference.test_query_graph import gallery, networks, random_homographies
 from tests.speed_helpers import textured_planes

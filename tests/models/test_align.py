@@ -20,12 +20,12 @@ from matl.geometry import (
     transfer_points,
     warp_image,
 )
-from matl.inference.recognizer import TensorRecognizer
 from matl.losses import TripletLoss
 from matl.models.align import SQUARE, AlignmentStage, square_to_quad
 from matl.models.checkpoint import build_model
 from matl.models.feature import FeatureNet
 from matl.models.module import MATLModule
+from matl.models.recognizer import TensorRecognizer
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config

@@ -10,8 +10,9 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, corner_error_px, pixel_to_normalised, warp_image
-from matl.inference.recognizer import TensorRecognizer, nearest
 from matl.models.feature import FeatureNet
+from matl.models.recognizer import TensorRecognizer
+from matl.models.search import nearest
 from matl.models.stn import STNOutput
 
 S = 32

@@ -1,4 +1,9 @@
-"""Inference (paper Sec. 4.5): nearest gallery anchor by ``||c(anchor) - c(s(query))||`` plus the STN pose.
+"""MATL's batched tensor-level recognizer (paper Sec. 4.5): nearest gallery anchor by
+``||c(anchor) - c(s(query))||`` plus the STN pose.
+
+It sits beside the models because their validation and test run it (:meth:`MATLModule.build_recognizer
+<matl.models.module.MATLModule.build_recognizer>`); the serving side (:mod:`matl.inference`) wraps it with
+image files, open-set answers, verification, refinement and other runtimes.
 
 Speed (docs/speed.md): a query batch runs ``s()`` and ``c()`` through their ``infer`` methods (the
 same function as ``forward`` up to float rounding, without kornia's per-call overhead). Small CPU
@@ -17,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -32,14 +36,13 @@ from matl.geometry import (
     normalised_to_pixel,
     sample_by_normalised,
 )
-from matl.inference.search import ExactSearch, GallerySearch, SearchFactory, nearest
 from matl.losses import anchor_distances
 from matl.models.feature import FeatureNet
+from matl.models.prediction import Prediction
+from matl.models.search import ExactSearch, GallerySearch, SearchFactory
 from matl.models.stn import SpatialTransformer, regress_homography
 
-# nearest lives in matl.inference.search
-__all__ = ["MODAL_LAYERS", "CompiledQueryPath", "Prediction", "QueryGraph", "TensorRecognizer", "embed", "nearest",
-           "weights_key"]
+__all__ = ["MODAL_LAYERS", "CompiledQueryPath", "QueryGraph", "TensorRecognizer", "embed", "weights_key"]
 
 log = logging.getLogger(__name__)
 
@@ -54,23 +57,6 @@ def weights_key(tensors: list[torch.Tensor]) -> list[tuple[int, int]]:
     """Storage and version counter of each tensor: changes when a weight is replaced, moved or modified in place
     (an optimiser step, ``load_state_dict``), so a path built from the weights knows when to rebuild."""
     return [(t.data_ptr(), t._version) for t in tensors]
-
-
-@dataclass
-class Prediction:
-    """Per-query results; ``query_H_canon`` is None for models without an STN."""
-
-    gallery_index: torch.Tensor          # (Q,) nearest gallery anchor
-    object_index: torch.Tensor           # (Q,)
-    plane_index: torch.Tensor            # (Q,)
-    anchor_index: torch.Tensor           # (Q,)
-    distance: torch.Tensor               # (Q,) L2 feature distance to it
-    query_H_anchor: torch.Tensor | None  # (Q, 3, 3) pixel, STN output
-    query_H_canon: torch.Tensor | None   # (Q, 3, 3) pixel pose
-    warped: torch.Tensor                 # (Q, 3, H, W) s(query)
-    degenerate: torch.Tensor             # (Q,) bool, STN output replaced by identity
-    #: (Q, D) c(s(query)), the embeddings the search used; None from recognizers without a feature gallery
-    features: torch.Tensor | None = field(default=None, kw_only=True)
 
 
 @torch.no_grad()
@@ -223,7 +209,7 @@ class TensorRecognizer(nn.Module):
         gallery_features: ``(G, D)`` precomputed ``c(gallery.images)`` (``matl.predict``'s on-disk
             cache); computed here when None.
         search: factory of the gallery search backend, ``factory(features (G, D))`` (see
-            :mod:`matl.inference.search`); None is exact torch search. Assigning ``gallery_features``
+            :mod:`matl.models.search`); None is exact torch search. Assigning ``gallery_features``
             rebuilds the backend, so the search never sees stale features.
         fast: run queries through the networks' ``infer`` methods when they have one
             (:meth:`matl.models.stn.SpatialTransformer.infer`, :meth:`matl.models.feature.FeatureNet.infer`):
