@@ -13,19 +13,17 @@ homography from the canonical image to each anchor. It comes in one of two forms
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from matl.data.canonical import planes_of_objects, require_models
+from matl.data.prepared import PreparedPlanes
 from matl.data.view_pool import load_view_pool
 from matl.data.view_sampler import ViewSampler
 from matl.geometry import HomographySampler, anchor_H_canon, warp_image
 from matl.utils.errors import MatlError
-
-if TYPE_CHECKING:
-    from matl.data.datamodule import TripletDataModule
 
 
 class FixedAnchors:
@@ -73,7 +71,7 @@ class RenderedRandomAnchors:
                  generator: torch.Generator, footprints: torch.Tensor) -> torch.Tensor:
         raise MatlError("anchors=random_rendered renders its anchors: the datamodule must call its build_anchors")
 
-    def build_anchors(self, dm: TripletDataModule, num_anchors: int,
+    def build_anchors(self, dm: PreparedPlanes, num_anchors: int,
                       generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Render (or load) the anchors of ``dm``'s planes.
 
@@ -105,7 +103,7 @@ class PhotoAnchors:
     def __call__(self, *args: Any, **kwargs: Any) -> torch.Tensor:
         raise MatlError("PhotoAnchors makes anchor images from photos: the datamodule must call its build_anchors")
 
-    def build_anchors(self, dm: TripletDataModule, num_anchors: int,
+    def build_anchors(self, dm: PreparedPlanes, num_anchors: int,
                       generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """``anchor_H_canon`` (P, N, 3, 3) float64 and anchor images (P, N, 3, S, S) float32."""
         P, size = dm.canonical.num_planes, (dm.image_size, dm.image_size)
@@ -135,7 +133,7 @@ class PhotoAnchors:
         return H, images
 
     @staticmethod
-    def _full_plane_object(dm: TripletDataModule) -> np.ndarray:
+    def _full_plane_object(dm: PreparedPlanes) -> np.ndarray:
         planes = dm.source.planes()
         objects = list(dict.fromkeys(p.object for p in planes))
         return np.array([objects.index(p.object) for p in planes], dtype=np.int64)

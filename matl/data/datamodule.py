@@ -28,6 +28,7 @@ from matl.data.anchors import FixedAnchors
 from matl.data.augment import CameraAugment
 from matl.data.canonical import CanonicalSet, CanonicalSource, load_canonical
 from matl.data.gallery import Gallery
+from matl.data.occlusion import OccludeQueries
 from matl.data.queries import QuerySource, make_query_source
 from matl.data.resumable import ResumableShuffleSampler, resume_position
 from matl.data.streams import stream_generator
@@ -92,6 +93,9 @@ class TripletDataModule(L.LightningDataModule):
         augment: camera-like positives and negatives (:class:`matl.data.augment.CameraAugment`,
             ``data.augment``), or None for the paper's clean warps. Anchors and the validation and
             test queries are never augmented.
+        occlude: partly hidden positives and negatives (:class:`matl.data.occlusion.OccludeQueries`,
+            ``data.occlude``), or None (the paper). The un-occluded positive is kept as
+            ``positive_target`` for the appearance loss.
     """
 
     def __init__(self, source: CanonicalSource, image_size: int = 100, num_anchors: int = 4,
@@ -99,7 +103,8 @@ class TripletDataModule(L.LightningDataModule):
                  train_triplets: int = 4000, val_queries: int = 300, test_queries: int = 1000,
                  batch_size: int = 32, eval_batch_size: int = 250, seed: int = 0,
                  cache_dir: str | Path = ".cache", objects: list[int] | None = None,
-                 queries: Any = "warped", views: Any = None, augment: CameraAugment | None = None) -> None:
+                 queries: Any = "warped", views: Any = None, augment: CameraAugment | None = None,
+                 occlude: OccludeQueries | None = None) -> None:
         super().__init__()
         if num_anchors < 1:
             raise ValueError(f"N (number of anchors) must be >= 1, got {num_anchors}")
@@ -115,6 +120,7 @@ class TripletDataModule(L.LightningDataModule):
         self.objects = objects
         self.queries, self.views = queries, views
         self.augment = augment
+        self.occlude = occlude
         self._ready = False
 
     # ------------------------------------------------------------------ setup
@@ -165,6 +171,9 @@ class TripletDataModule(L.LightningDataModule):
         if self.augment is not None:  # one seed per triplet: a batch is augmented alike whenever it is made
             self.augment.setup(self.canon_images, self.masks[:, None].float())
             triplets["aug_seed"] = torch.randint(2**62, (self.train_triplets,), generator=stream("augment"))
+        if self.occlude is not None:  # likewise one seed per triplet for the occluders
+            self.occlude.setup(self.canon_images, self.masks[:, None].float(), self.plane_object)
+            triplets["occ_seed"] = torch.randint(2**62, (self.train_triplets,), generator=stream("occlude"))
         self.train_set = ParamsDataset(triplets)
         self.val_set = ParamsDataset(sample.sample_queries(self.val_queries, "val", stream("val")))
         self.test_set = ParamsDataset(sample.sample_queries(self.test_queries, "test", stream("test")))
@@ -217,6 +226,14 @@ class TripletDataModule(L.LightningDataModule):
                 g = torch.Generator().manual_seed(int(batch["aug_seed"][0]))
                 pos_mask, neg_mask = self.query_source.foreground(out)
                 both = self.augment(torch.cat([out["positive"], out["negative"]]), torch.cat([pos_mask, neg_mask]), g)
+                out["positive"], out["negative"] = both.chunk(2)
+            if self.occlude is not None and "occ_seed" in batch:
+                g = torch.Generator().manual_seed(int(batch["occ_seed"][0]))
+                pos_mask, neg_mask = self.query_source.foreground(out)
+                objects = torch.cat([batch["object"], batch["neg_object"]]).cpu()
+                both, _ = self.occlude(torch.cat([out["positive"], out["negative"]]),
+                                       torch.cat([pos_mask, neg_mask]), objects, g)
+                out["positive_target"] = out["positive"]
                 out["positive"], out["negative"] = both.chunk(2)
         return out
 

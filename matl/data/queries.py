@@ -19,19 +19,17 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
 from matl.data.canonical import require_models
+from matl.data.prepared import PreparedPlanes
 from matl.data.streams import copy_generator, stream_generator
 from matl.data.view_pool import load_view_pool
 from matl.data.view_sampler import ViewSampler
 from matl.geometry import HomographySampler, warp_image
 from matl.utils.errors import MatlError
-
-if TYPE_CHECKING:
-    from matl.data.datamodule import TripletDataModule
 
 Batch = dict[str, torch.Tensor]
 
@@ -45,7 +43,7 @@ class QuerySource(Protocol):
     the module docstring for the parameter dicts).
     """
 
-    def setup(self, dm: TripletDataModule) -> None:
+    def setup(self, dm: PreparedPlanes) -> None:
         """Prepare for ``dm``'s canonical planes (``dm.canonical``, ``dm.image_size``, ``dm.seed``)."""
         ...
 
@@ -80,7 +78,7 @@ class WarpedQueries:
     def __init__(self, homography: HomographySampler | None = None) -> None:
         self.homography = homography or HomographySampler()
 
-    def setup(self, dm: TripletDataModule) -> None:
+    def setup(self, dm: PreparedPlanes) -> None:
         self.size = dm.size
         self.footprints = dm.footprints
         self.plane_object = dm.plane_object
@@ -171,7 +169,7 @@ class RenderedQueries:
         n_test = max(1, round(v * self.test_fraction))
         return v - n_val - n_test, n_val, n_test
 
-    def setup(self, dm: TripletDataModule) -> None:
+    def setup(self, dm: PreparedPlanes) -> None:
         source = require_models(dm.source, "data.queries=rendered")
         pool = load_view_pool(source, dm.image_size, self.views_per_plane, self.sampler, self.seed, dm.cache_dir)
         if dm.objects is not None:

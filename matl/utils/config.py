@@ -21,8 +21,13 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from matl.data.catalog_names import SYNTHETIC_CATALOGS  # not matl.data.catalog: that import takes seconds
 from matl.utils.errors import CONF_DIR, MatlError
+
+#: the synthetic catalogs ``data.source.catalog`` can name, defined here so that validation reads them without
+#: importing matl.data.catalog (seconds), which builds them: apc, arc and ycb are compositions of the paper's
+#: datasets (matl.data.catalog.products.CATALOG_COMPOSITIONS); ycb_table2 is ycb split for Table 2 (11 simple and
+#: 23 non-planar objects)
+SYNTHETIC_CATALOGS = ("apc", "arc", "ycb", "ycb_table2")
 
 
 class ConfigError(MatlError, ValueError):
@@ -84,6 +89,10 @@ def fraction(v: Any) -> bool:
     return _is_number(v) and 0.0 < v <= 1.0
 
 
+def fraction_or_zero(v: Any) -> bool:
+    return _is_number(v) and 0 <= v <= 1
+
+
 def is_bool(v: Any) -> bool:
     return isinstance(v, bool)
 
@@ -121,6 +130,8 @@ RULES: tuple[Rule, ...] = (
     Rule("data.source.fill", fraction, "a fraction in (0, 1] of the image the plane covers (catalogs: 0.6)"),
     Rule("data.source.supersample", int_at_least(1), "an integer >= 1"),
     Rule("data.source.subset", one_of("all", "planar", "nonplanar"), "all, planar or nonplanar"),
+    Rule("data.occlude.p", fraction_or_zero, "a probability in [0, 1], the share of occluded training images"),
+    Rule("data.occlude.leak_p", fraction_or_zero, "a probability in [0, 1]"),
     # model
     Rule("model.anchor_choice", one_of("feature", "appearance"), "feature (paper) or appearance"),
     Rule("model.stn.iterations", int_at_least(1), "an integer >= 1 (paper: 1)"),

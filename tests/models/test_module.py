@@ -10,10 +10,12 @@ from torch import nn
 
 from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, corner_error_px, pixel_to_normalised, warp_image
+from matl.losses import TripletLoss
 from matl.models.feature import FeatureNet
+from matl.models.module import MATLModule
 from matl.models.recognizer import TensorRecognizer
 from matl.models.search import nearest
-from matl.models.stn import STNOutput
+from matl.models.stn import HomographyRegressor, SpatialTransformer, STNOutput
 
 S = 32
 
@@ -93,3 +95,36 @@ def test_checkpoint_score_weighs_recognition_and_pose_alike() -> None:
     assert pose_only(0.1, 0.3) == pytest.approx(0.3)
     with pytest.raises(ValueError, match="score_weights"):
         PoseEvaluationModule(image_size=32, num_anchors=4, score_weights={"accuracy": 1.0})
+
+
+def _occlusion_model() -> tuple[MATLModule, dict[str, torch.Tensor]]:
+    torch.manual_seed(0)
+    stn = SpatialTransformer(HomographyRegressor(image_size=S), image_size=S, iterations=2)
+    with torch.no_grad():
+        stn.regressor.fc2.bias.copy_(torch.tensor([0.05, -0.03, 0.04, 0.02, -0.04, -0.05, 0.01, -0.02]))
+    model = MATLModule(FeatureNet(), stn, TripletLoss(), image_size=S, appearance="symmetric")
+    g = torch.Generator().manual_seed(1)
+    batch = {"anchors": torch.rand(4, 4, 3, S, S, generator=g), "positive": torch.rand(4, 3, S, S, generator=g),
+             "negative": torch.rand(4, 3, S, S, generator=g), "object": torch.arange(4),
+             "neg_object": torch.arange(4) + 4}
+    return model, batch
+
+
+def test_warp_target_is_the_stns_own_warp() -> None:
+    model, batch = _occlusion_model()
+    out = model.stn(batch["positive"])
+    assert torch.allclose(model.warp_target(batch["positive"], out.query_H_anchor), out.warped, atol=1e-5)
+
+
+def test_appearance_is_taken_on_the_whole_positive_when_it_is_occluded() -> None:
+    """``positive_target`` (data.occlude): the pose is regressed from the occluded positive, the appearance loss
+    judges it on the whole one; a target equal to the positive is the plain loss."""
+    model, batch = _occlusion_model()
+    plain = model.training_loss(batch)
+    same = model.training_loss({**batch, "positive_target": batch["positive"].clone()})
+    assert torch.allclose(plain, same, atol=1e-6)
+    holed = batch["positive"].clone()
+    holed[:, :, : S // 2] = 0.0
+    occluded = model.training_loss({**batch, "positive": holed, "positive_target": batch["positive"]})
+    unaware = model.training_loss({**batch, "positive": holed})
+    assert torch.isfinite(occluded) and not torch.allclose(occluded, unaware)

@@ -24,7 +24,7 @@ from matl.data.catalog.drawing import PHOTO_POOLS, TRAINING_PHOTO_POOL
 from matl.data.catalog.models import product_model
 from matl.data.catalog.nonplanar import NONPLANAR_COMPOSITION, PLANES_PER_FORM, sample_nonplanar
 from matl.data.catalog.products import CATALOG_COMPOSITIONS, SHAPES, ProductSpec, sample_products
-from matl.data.catalog_names import SYNTHETIC_CATALOGS
+from matl.utils.config import SYNTHETIC_CATALOGS
 
 if TYPE_CHECKING:
     from matl.data.catalog.shapes import ProductModel
