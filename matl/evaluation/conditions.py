@@ -13,6 +13,9 @@ homographies are ``query_H_canon`` in pixels (docs/design.md).
   segmentation (the true warped mask grown or shrunk by a few px, with a ragged edge).
 * ``clutter``: the product on a real background, a neighbouring product partly in the frame, cut by
   the crop's edge; RGB, no mask.
+* ``occluded``: the product on a picking bin's floor (:class:`DarkFloor`, or a real background), partly
+  hidden by another product lying on it, a gripper, a suction cup or the bin's wall
+  (:class:`matl.data.occluders.Occluders`); mostly RGB, a share RGBA with alpha the visible part.
 * ``view`` and ``sizes`` are written by :mod:`matl.evaluation.unseen` (rendered views; other file sizes).
 """
 
@@ -33,7 +36,7 @@ from matl.data.canonical import CanonicalSet
 from matl.data.datamodule import footprints_from_masks
 from matl.geometry import HomographySampler, warp_image
 
-CONDITIONS = ("clean", "photometric", "mask", "clutter", "view", "sizes")
+CONDITIONS = ("clean", "photometric", "mask", "clutter", "occluded", "view", "sizes")
 
 
 def condition_rng(seed: int, condition: str, index: int) -> np.random.Generator:
@@ -153,6 +156,31 @@ def heldout_backgrounds(crop: tuple[float, float] = (0.25, 0.8)) -> Backgrounds:
 
     return Backgrounds([np.asarray(heldout_image(k), dtype=np.float64) / 255.0
                         for k in sorted(HELDOUT_BACKGROUND_FILES)], crop)
+
+
+@dataclass
+class DarkFloor:
+    """A dark bin floor (``occluded.dark_floor.*`` of conf/unseen.yaml): near-black, lit from above, with noise.
+
+    Args:
+        level: its brightness at the centre (of 1), uniform in ``[low, high]``.
+        noise: standard deviation of per-pixel sensor noise.
+        vignetting: the corners are darker by this share (a radial falloff, quadratic in the distance).
+    """
+
+    level: tuple[float, float] = (0.02, 0.08)
+    noise: tuple[float, float] = (0.005, 0.02)
+    vignetting: tuple[float, float] = (0.1, 0.4)
+
+    def sample(self, size: int, rng: np.random.Generator) -> np.ndarray:
+        """One ``(size, size, 3)`` float64 floor in [0, 1]."""
+        level, noise, vignetting = (_uniform(rng, r) for r in (self.level, self.noise, self.vignetting))
+        tint = 1.0 + rng.uniform(-0.05, 0.05, 3)
+        centre = (size - 1) / 2.0
+        ys, xs = np.mgrid[0:size, 0:size]
+        radius2 = ((xs - centre) ** 2 + (ys - centre) ** 2) / (2.0 * max(centre, 1.0) ** 2)  # 1 at the corners
+        floor = level * (1.0 - vignetting * radius2)[..., None] * tint
+        return np.clip(floor + rng.standard_normal((size, size, 3)) * noise, 0.0, 1.0)
 
 
 def composite(background: np.ndarray, image: np.ndarray, mask: np.ndarray) -> np.ndarray:

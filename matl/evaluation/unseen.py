@@ -4,11 +4,12 @@ The library side of ``python -m matl.unseen`` (the command and its options: :mod
 condition (:mod:`matl.evaluation.conditions`) is written from the same products and query poses into
 ``<out>/<condition>/`` and predicted by every method through ``python -m matl.predict`` (MATL, MATL with
 refinement, and the keypoint baselines with ``baseline=``, on the same files framed the same way), scored
-by :func:`matl.evaluation.score.score_files` and timed in this process on the same queries.
+by :func:`score_condition` (:mod:`matl.evaluation.score`'s metrics) and timed in this process on the same queries.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -27,9 +28,11 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from PIL import Image
 
 from matl.data.canonical import CanonicalSet, load_canonical, require_models
+from matl.data.occluders import Occluders
 from matl.evaluation.conditions import (
     CONDITIONS,
     Clutter,
+    DarkFloor,
     ImperfectMask,
     Photometric,
     composite,
@@ -42,7 +45,7 @@ from matl.evaluation.conditions import (
     warp_planes,
 )
 from matl.evaluation.open_set import open_set_summary, plot_open_set
-from matl.evaluation.score import METRICS, score_files, write_rows
+from matl.evaluation.score import METRICS, match_predictions, read_truth, score, write_rows
 from matl.geometry import HomographySampler
 from matl.inference.runtime import runtime_option
 from matl.models.checkpoint import checkpoint_info, load_checkpoint
@@ -148,6 +151,14 @@ def _query_name(root: Path, i: int, n: int, suffix: str = ".png") -> Path:
     return root / f"q{i:0{max(4, len(str(n - 1)))}d}{suffix}"
 
 
+def write_true_mask(out: Path, query: Path, coverage: np.ndarray) -> str:
+    """The target product's true visible mask of a query, ``<out>/masks/<query stem>.png`` (uint8 0/255: coverage
+    ``(H, W)`` above 0.5), to score a foreground step's mask; returns its path relative to ``out`` (``mask_file``)."""
+    path = out / "masks" / f"{query.stem}.png"
+    _write_png(path, np.where(coverage > 0.5, 255, 0).astype(np.uint8))
+    return str(path.relative_to(out))
+
+
 def write_queries(cs: CanonicalSet, sampler: HomographySampler, n: int, seed: int, root: Path,
                   gallery_files: list[Path], canon_H_file: torch.Tensor, out: Path) -> list[dict[str, Any]]:
     """``n`` warped query files ``<root>/q<i>.png`` (the ``clean`` condition) and their ground-truth records.
@@ -239,7 +250,8 @@ def write_mask(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: 
         alpha, params = segmenter.apply(mask > 0.5, rng)
         path = _query_name(root, i, len(images))
         _write_png(path, np.concatenate([to_uint8(rgb), alpha[..., None].astype(np.uint8) * 255], axis=-1))
-        truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p], mask=params))
+        truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p], mask=params,
+                             mask_file=write_true_mask(out, path, mask)))
     return truth
 
 
@@ -264,7 +276,62 @@ def write_clutter(q: Queries, root: Path, gallery_files: list[Path], canon_H_fil
         _write_png(path, to_uint8(scene))
         truth.append(_record(path, out, q.cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p],
                              neighbour={"object": q.cs.object_names[int(q.cs.plane_object[other])],
-                                        "plane": q.cs.plane_names[other]}))
+                                        "plane": q.cs.plane_names[other]},
+                             mask_file=write_true_mask(out, path, mask)))  # the product lies on top: all of it
+    return truth
+
+
+def _weighted(weights: dict[str, float], rng: np.random.Generator) -> str:
+    """One name of ``weights`` (name -> weight >= 0, some > 0), drawn in proportion."""
+    names = list(weights)
+    p = np.array([float(weights[n]) for n in names])
+    return names[int(rng.choice(len(names), p=p / p.sum()))]
+
+
+def write_occluded(q: Queries, root: Path, gallery_files: list[Path], canon_H_file: torch.Tensor,
+                   out: Path) -> list[dict[str, Any]]:
+    """The product in a picking bin, partly hidden (:class:`~matl.data.occluders.Occluders`).
+
+    Each query: a floor (dark, :class:`DarkFloor`, or a held-out background photo, by ``occluded.floors``), the
+    product on it, then one occluder hiding a fraction drawn in ``occluded.hidden``; the ``product`` occluders
+    are the other held-out products' prints, the bin wall's texture another background crop. A share
+    ``occluded.rgba_share`` of the files is RGBA with alpha the visible part of the product; the rest is RGB.
+    The truth adds ``hidden_fraction``, ``occluder``, ``floor``, ``rgba`` and ``mask_file`` (the visible mask).
+    """
+    node = q.cfg.occluded
+    occluders = Occluders(dict(node.kinds), tuple(node.hidden))
+    floors = {str(k): float(v) for k, v in node.floors.items()}
+    dark, rgba_share = DarkFloor(**_node(node, "dark_floor")), float(node.rgba_share)
+    backgrounds = heldout_backgrounds(tuple(q.cfg.backgrounds.crop))
+    cs, size = q.cs, q.cs.image_size
+    if occluders.kinds.get("product", 0.0) > 0 and cs.num_objects < 2:
+        raise MatlError("condition=occluded lays other products on the query's: it needs at least two products, or "
+                        "occluded.kinds.product=0")
+    prints = [(cs.images[j].astype(np.float64) / 255.0, cs.masks[j].astype(np.float64)) for j in range(cs.num_planes)]
+    images, masks = warp_planes(cs, q.plane, q.query_H_canon)
+    root.mkdir(parents=True, exist_ok=True)
+    truth = []
+    for i, (image, mask) in enumerate(zip(images, masks, strict=True)):
+        p, rng = int(q.plane[i]), condition_rng(q.seed, "occluded", i)
+        floor_kind = _weighted(floors, rng)
+        floor = dark.sample(size, rng) if floor_kind == "dark" else backgrounds.sample(size, rng)
+        others = np.flatnonzero(cs.plane_object != cs.plane_object[p])
+        wall = backgrounds.sample(size, rng)
+        scene, visible, info = occluders.apply(composite(floor, image, mask), mask, rng,
+                                               [prints[j] for j in others], floor=wall)
+        if "product_index" in info:  # the occluding print: a plane of another held-out product
+            j = int(others[info.pop("product_index")])
+            info["product"] = {"object": cs.object_names[int(cs.plane_object[j])], "plane": cs.plane_names[j]}
+        rgba = bool(rng.random() < rgba_share)
+        path = _query_name(root, i, len(images))
+        pixels = to_uint8(scene)
+        if rgba:
+            pixels = np.concatenate([pixels, np.where(visible > 0.5, 255, 0).astype(np.uint8)[..., None]], axis=-1)
+        _write_png(path, pixels)
+        truth.append(_record(path, out, cs, p, gallery_files, q.query_H_canon[i] @ canon_H_file[p],
+                             hidden_fraction=info["hidden_fraction"], occluder=info["occluder"], floor=floor_kind,
+                             rgba=rgba, mask_file=write_true_mask(out, path, visible),
+                             occlusion={k: v for k, v in info.items() if k not in ("occluder", "hidden_fraction")}))
     return truth
 
 
@@ -322,7 +389,7 @@ def _write_clean_condition(q: Queries, root: Path, gallery_files: list[Path], ca
 
 
 WRITERS = {"clean": _write_clean_condition, "photometric": write_photometric, "mask": write_mask,
-           "clutter": write_clutter, "view": write_view, "sizes": write_sizes}
+           "clutter": write_clutter, "occluded": write_occluded, "view": write_view, "sizes": write_sizes}
 
 
 OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
@@ -481,6 +548,32 @@ def _ranges(cfg: DictConfig, keys: list[str]) -> None:
             raise MatlError(f"{key}={value} is invalid: use [low, high] with low <= high")
 
 
+def _check_occluded(cfg: DictConfig) -> None:
+    """``occluded.*``: the occluders' kinds and range, the floors' weights, the RGBA share, the bins."""
+    node = cfg.occluded
+    kinds = OmegaConf.to_container(node.kinds) if isinstance(node.kinds, DictConfig) else node.kinds
+    try:
+        Occluders(kinds, tuple(node.hidden))
+    except MatlError as error:
+        raise MatlError(f"occluded: {error}") from None
+    floors = OmegaConf.to_container(node.floors) if isinstance(node.floors, DictConfig) else node.floors
+    if not isinstance(floors, dict) or not floors or not set(floors) <= {"dark", "texture"} or not all(
+            isinstance(w, (int, float)) and not isinstance(w, bool) and w >= 0 for w in floors.values()) \
+            or sum(floors.values()) <= 0:
+        raise MatlError(f"occluded.floors={floors} is invalid: use weights >= 0 of dark and texture, not all 0, "
+                        "e.g. {dark: 0.5, texture: 0.5}")
+    share = node.rgba_share
+    if not isinstance(share, (int, float)) or isinstance(share, bool) or not 0.0 <= share <= 1.0:
+        raise MatlError(f"occluded.rgba_share={share} is invalid: use a fraction in [0, 1] of RGBA query files")
+    bins = node.bins
+    if not isinstance(bins, (list, ListConfig)) or not bins or not all(
+            isinstance(b, (int, float)) and not isinstance(b, bool) and 0.0 < b < 1.0 for b in bins) \
+            or any(a >= b for a, b in itertools.pairwise(bins)):
+        shown = OmegaConf.to_container(bins) if isinstance(bins, ListConfig) else bins
+        raise MatlError(f"occluded.bins={shown} is invalid: use increasing upper edges in (0, 1) of the "
+                        "hidden-fraction bins, e.g. [0.2, 0.35, 0.5]")
+
+
 def _check(cfg: DictConfig) -> tuple[list[str], list[str]]:
     """Validate a composed ``conf/unseen.yaml``; returns the conditions and the methods."""
     validate_config(cfg)
@@ -498,7 +591,9 @@ def _check(cfg: DictConfig) -> tuple[list[str], list[str]]:
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise MatlError(f"{key}={value} is invalid: use an integer >= {low}")
     _ranges(cfg, [f"photometric.{k}" for k in cfg.photometric] + ["mask.offset_px", "mask.ragged_px",
-                                                                   "clutter.distance", "backgrounds.crop"])
+                                                                   "clutter.distance", "backgrounds.crop"]
+            + ["occluded.hidden"] + [f"occluded.dark_floor.{k}" for k in ("level", "noise", "vignetting")])
+    _check_occluded(cfg)
     leave_out = cfg.get("leave_out", 0.0)
     if not isinstance(leave_out, (int, float)) or isinstance(leave_out, bool) or not 0.0 <= leave_out < 1.0:
         raise MatlError(f"leave_out={leave_out} is invalid: use a fraction in [0, 1) of the products kept out of "
@@ -543,7 +638,7 @@ def _products(cfg: DictConfig, train_data: dict[str, Any], file_size: int) -> tu
 def _settings(cfg: DictConfig, condition: str) -> dict[str, Any] | None:
     """The config values a condition was made with (for unseen.json)."""
     keys = {"photometric": ["photometric"], "mask": ["mask", "backgrounds"], "clutter": ["clutter", "backgrounds"],
-            "view": ["view"], "sizes": ["sizes"]}.get(condition)
+            "occluded": ["occluded", "backgrounds"], "view": ["view"], "sizes": ["sizes"]}.get(condition)
     if keys is None:
         return None
     return {k: OmegaConf.to_container(cfg[k], resolve=True) for k in keys}
@@ -573,8 +668,15 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
         t["enrolled"] = t["object"] not in left_out
         if not t["enrolled"]:
             t["gallery_image"] = str(Path("left_out") / Path(t["gallery_image"]).relative_to("gallery"))
+    enrolled = [t for t in truth if t["enrolled"]]
     truth_path = out / "truth.jsonl"
-    truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth if t["enrolled"]))
+    truth_path.write_text("".join(json.dumps(t) + "\n" for t in enrolled))
+    headline = headline_queries(enrolled)
+    headline_path = truth_path  # the queries of the headline numbers (all, or the RGB ones of a mixed condition)
+    if len(headline) < len(enrolled):
+        headline_path = out / "truth_rgb.jsonl"
+        headline_path.write_text("".join(json.dumps(enrolled[i]) + "\n" for i in headline))
+    groups = breakdown_groups(enrolled, headline, [float(e) for e in cfg.occluded.bins])
     if left_out:
         (out / "truth_left_out.jsonl").write_text("".join(json.dumps(t) + "\n" for t in truth if not t["enrolled"]))
 
@@ -586,13 +688,18 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     primary = primary_method(methods)
     per_method: dict[str, dict[str, Any]] = {}
     rows_of: dict[str, list[dict[str, Any]]] = {}
+    scored_groups: dict[str, dict[str, dict[str, dict[str, Any]]]] = {}
     for method in methods:
         pred_path = out / ("predictions.jsonl" if method == primary else f"predictions_{method}.jsonl")
         args = [*predict_args(method, common, foreground_choice(cfg), runtime_option(cfg)), _arg("out", pred_path)]
         log.info("unseen: %s: predicting %d queries with %s", condition, len(truth), method)
         run_predict([*args, _arg("hydra.run.dir", out / f"predict_{method}")], out, f"predict_{method}.log")
-        summary, rows = score_files(pred_path, truth_path, size, gallery_fill, query_fill)
-        score_args = [_arg("predictions", pred_path), _arg("truth", truth_path), _arg("ckpt", ckpt_path),
+        summary, rows, scored_groups[method] = score_condition(pred_path, truth_path, headline, groups, size,
+                                                               gallery_fill, query_fill)
+        summary["truth"] = str(headline_path)
+        for row, t in zip(rows, enrolled, strict=True):  # a mixed condition's own fields, per query
+            row.update({k: t[k] for k in QUERY_FIELDS if k in t})
+        score_args = [_arg("predictions", pred_path), _arg("truth", headline_path), _arg("ckpt", ckpt_path),
                       _arg("gallery_fill", gallery_fill), _arg("query_fill", query_fill),
                       _arg("out", out / f"score_{method}")]
         per_method[method] = {**{k: summary[k] for k in METRICS}, "query_ms": None, "summary": summary,
@@ -604,7 +711,9 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
 
     timing = None
     if int(cfg.timing.queries) > 0:
-        files = sorted((out / "queries").iterdir())[: int(cfg.timing.queries) + int(cfg.timing.warmup)]
+        rgba = {t["image"] for t in truth if t.get("rgba")} if len(headline) < len(enrolled) else set()
+        files = [f for f in sorted((out / "queries").iterdir()) if str(f.relative_to(out)) not in rgba]  # headline's
+        files = files[: int(cfg.timing.queries) + int(cfg.timing.warmup)]
         warmup = min(int(cfg.timing.warmup), max(len(files) - 1, 0))
         recognizers = {m: method_recognizer(m, cfg, ckpt_path, threshold, gallery_fill, query_fill).enrol(
             out / "gallery") for m in methods}
@@ -624,7 +733,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
         open_set = {k: v for k, v in open_set.items() if k != "curve"}
         log.info("unseen: open set %s", json.dumps(open_set))
 
-    summary, rows = per_method[primary]["summary"], rows_of[primary]
+    summary, rows = per_method[primary]["summary"], [rows_of[primary][i] for i in headline]
     related = checked["related"]
     unrelated = [r for r in rows if r["true_object"] not in related]
     result = {
@@ -632,6 +741,7 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
         "rec_acc_unrelated": sum(r["correct"] for r in unrelated) / len(unrelated) if unrelated else None,
         "num_queries_unrelated": len(unrelated),
         "num_queries": summary["num_queries"], "missing_predictions": summary["missing_predictions"],
+        "num_queries_all": len(enrolled), "headline": "all" if len(headline) == len(enrolled) else "rgb",
         "num_objects": cs.num_objects, "num_planes": cs.num_planes,
         "condition": condition, "condition_settings": _settings(cfg, condition), "method": primary,
         "foreground": foreground_choice(cfg),
@@ -648,8 +758,13 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
         "per_object": summary["per_object"], "confusions": summary["confusions"],
         "commands": {"unseen": _own_command(), **per_method[primary]["commands"]},
         "files": {"gallery": "gallery", "queries": "queries", "truth": truth_path.name,
-                  "predictions": per_method[primary]["predictions"], "per_query": "per_query.csv"},
+                  "predictions": per_method[primary]["predictions"], "per_query": "per_query.csv",
+                  **({"truth_headline": headline_path.name} if headline_path != truth_path else {}),
+                  **({"masks": "masks"} if (out / "masks").is_dir() else {})},
     }
+    if groups:
+        result["breakdown"] = breakdown_result(groups, scored_groups, [float(e) for e in cfg.occluded.bins],
+                                               result["headline"])
     if open_set is not None:
         result["open_set"] = {**open_set, "left_out": left_out, "curve": "open_set.json", "figure": "open_set.png"}
     write_json(out / "unseen.json", result)
@@ -658,6 +773,107 @@ def run_condition(condition: str, q: Queries, cfg: DictConfig, methods: list[str
     log.info("unseen: %s: %s", condition, json.dumps({m: {k: r[k] for k in TABLE_METRICS}
                                                       for m, r in per_method.items()}))
     return result
+
+
+# -------------------------------------------------------------------------------------- breakdown
+BREAKDOWN_METRICS = ("rec_acc", "corner_err_px_median", "pose_acc_5px")
+BREAKDOWN_GROUPS = ("hidden_fraction", "occluder", "floor", "input")
+QUERY_FIELDS = ("hidden_fraction", "occluder", "floor", "rgba")  # copied from the truth into per_query.csv
+
+
+def headline_queries(truth: list[dict[str, Any]]) -> list[int]:
+    """Indices of the truth records whose metrics are a condition's headline (its row of the table): the RGB
+    queries of a condition that mixes RGB and RGBA files (``occluded``; ``rgba`` true in the truth), else all."""
+    rgb = [i for i, t in enumerate(truth) if not t.get("rgba", False)]
+    return rgb if rgb else list(range(len(truth)))
+
+
+def bin_labels(edges: list[float]) -> list[str]:
+    """Labels of the hidden-fraction bins with upper ``edges`` (increasing), and of the one beyond the last:
+    ``[0.2, 0.35, 0.5]`` -> ``<=0.20``, ``0.20-0.35``, ``0.35-0.50``, ``>0.50``."""
+    return ([f"<={edges[0]:.2f}"] + [f"{a:.2f}-{b:.2f}" for a, b in itertools.pairwise(edges)]
+            + [f">{edges[-1]:.2f}"])
+
+
+def hidden_bin(fraction: float, edges: list[float]) -> str:
+    """The label of the bin (:func:`bin_labels`) a hidden fraction falls in; an upper edge belongs to its bin."""
+    labels = bin_labels(edges)
+    return next((label for edge, label in zip(edges, labels, strict=False) if fraction <= edge), labels[-1])
+
+
+def breakdown_groups(truth: list[dict[str, Any]], headline: list[int], edges: list[float]
+                     ) -> dict[str, dict[str, list[int]]]:
+    """The breakdown of a condition whose truth records carry ``hidden_fraction`` (``occluded``; else ``{}``): the
+    headline queries by hidden-fraction bin (every bin up to the last edge listed, empty or not), occluder kind and
+    floor; every query by input (``rgb``, ``rgba``). Values: indices into ``truth``."""
+    if not any("hidden_fraction" in t for t in truth):
+        return {}
+    from matl.data.occluders import OCCLUDER_KINDS
+
+    by_bin: dict[str, list[int]] = {label: [] for label in bin_labels(edges)[:-1]}
+    by_kind: dict[str, list[int]] = {}
+    by_floor: dict[str, list[int]] = {}
+    for i in headline:
+        by_bin.setdefault(hidden_bin(float(truth[i]["hidden_fraction"]), edges), []).append(i)
+        by_kind.setdefault(str(truth[i]["occluder"]), []).append(i)
+        by_floor.setdefault(str(truth[i]["floor"]), []).append(i)
+    by_input: dict[str, list[int]] = {"rgb": [], "rgba": []}
+    for i, t in enumerate(truth):
+        by_input["rgba" if t.get("rgba") else "rgb"].append(i)
+    kinds = sorted(by_kind, key=lambda k: OCCLUDER_KINDS.index(k) if k in OCCLUDER_KINDS else len(OCCLUDER_KINDS))
+    return {"hidden_fraction": by_bin, "occluder": {k: by_kind[k] for k in kinds},
+            "floor": dict(sorted(by_floor.items())), "input": by_input}
+
+
+def _read_predictions(path: Path) -> list[dict[str, Any]]:
+    try:
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, json.JSONDecodeError) as error:
+        raise MatlError(f"predictions={path} cannot be read: {' '.join(str(error).split())}") from None
+
+
+def score_condition(predictions: Path, truth: Path, headline: list[int], groups: dict[str, dict[str, list[int]]],
+                    image_size: int, gallery_fill: float = 1.0, query_fill: float = 1.0
+                    ) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, dict[str, dict[str, Any]]]]:
+    """Score one method's predictions of a condition (:func:`matl.evaluation.score.score`, its metrics).
+
+    Returns:
+        ``(summary, rows, groups)``: the summary of the ``headline`` queries (indices into ``truth``'s lines), the
+        per-query rows of every query, and per group and label of ``groups`` its ``num_queries`` and
+        :data:`BREAKDOWN_METRICS` (None for an empty label).
+    """
+    labelled = read_truth(truth)
+    base = Path(truth).expanduser().parent.resolve()
+    matched = match_predictions(labelled, _read_predictions(Path(predictions)), base)
+
+    def scored(indices: list[int]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        return score([labelled[i] for i in indices], [matched[i] for i in indices], image_size, gallery_fill,
+                     query_fill, base)
+
+    every, rows = score(labelled, matched, image_size, gallery_fill, query_fill, base)
+    summary = every if len(headline) == len(labelled) else scored(headline)[0]
+    summary.update(predictions=str(predictions), truth=str(truth))
+    by_group: dict[str, dict[str, dict[str, Any]]] = {}
+    for group, labels in groups.items():
+        by_group[group] = {}
+        for label, indices in labels.items():
+            metrics = scored(indices)[0] if indices else {}
+            by_group[group][label] = {"num_queries": len(indices), **{k: metrics.get(k) for k in BREAKDOWN_METRICS}}
+    return summary, rows, by_group
+
+
+def breakdown_result(groups: dict[str, dict[str, list[int]]], scored: dict[str, dict[str, dict[str, dict]]],
+                     edges: list[float], headline: str) -> dict[str, Any]:
+    """``unseen.json``'s ``breakdown``: per group and label, ``num_queries`` and each method's metrics."""
+    out: dict[str, Any] = {
+        "queries": (f"hidden_fraction, occluder and floor: the headline ({headline}) queries; input: every query"),
+        "hidden_fraction_bins": edges, "metrics": list(BREAKDOWN_METRICS)}
+    for group, labels in groups.items():
+        out[group] = {label: {"num_queries": len(indices),
+                              "methods": {m: {k: s[group][label][k] for k in BREAKDOWN_METRICS}
+                                          for m, s in scored.items()}}
+                      for label, indices in labels.items()}
+    return out
 
 
 # ------------------------------------------------------------------------------------------ table
@@ -692,6 +908,22 @@ def benchmark_table(results: dict[str, dict[str, Any]], methods: list[str], comm
     for condition, row in table.items():
         lines.append(f"| {condition} | {results[condition]['num_queries']} | "
                      + " | ".join(_cell(row[m]) for m in methods) + " |")
+    headlines = {c: r.get("headline") for c, r in results.items() if r.get("headline") not in (None, "all")}
+    if headlines:
+        lines += ["", "Rows of " + ", ".join(f"{c} count its {h.upper()} queries only" for c, h in headlines.items())
+                  + " (the breakdown below has the others)."]
+    for condition, result in results.items():
+        breakdown = result.get("breakdown")
+        if not breakdown:
+            continue
+        data.setdefault("breakdown", {})[condition] = breakdown
+        lines += ["", f"{condition} broken down ({breakdown['queries']}); each cell: rec_acc / median corner_err_px / "
+                  "pose_acc_5px.", "", "| group | queries | " + " | ".join(methods) + " |",
+                  "|---|---|" + "---|" * len(methods)]
+        for group in BREAKDOWN_GROUPS:
+            for label, entry in breakdown.get(group, {}).items():
+                cells = (_cell({**entry["methods"].get(m, {}), "query_ms": None}).rsplit(" / ", 1)[0] for m in methods)
+                lines.append(f"| {group} {label} | {entry['num_queries']} | " + " | ".join(cells) + " |")
     return data, "\n".join(lines) + "\n"
 
 

@@ -21,7 +21,19 @@ from omegaconf import open_dict
 from matl.data.canonical import CanonicalSet
 from matl.evaluation.score import read_truth, score, score_files
 from matl.evaluation.score import run as score_run
-from matl.evaluation.unseen import seen_products, unseen, write_gallery, write_queries
+from matl.evaluation.unseen import (
+    benchmark_table,
+    bin_labels,
+    breakdown_groups,
+    breakdown_result,
+    headline_queries,
+    hidden_bin,
+    score_condition,
+    seen_products,
+    unseen,
+    write_gallery,
+    write_queries,
+)
 from matl.geometry import HomographySampler
 from matl.training.fit import train
 from matl.utils.errors import MatlError
@@ -131,6 +143,59 @@ def test_score_user_errors(tmp_path: Path) -> None:
         score_run(cfg)
 
 
+def test_hidden_fraction_bins() -> None:
+    edges = [0.2, 0.35, 0.5]
+    assert bin_labels(edges) == ["<=0.20", "0.20-0.35", "0.35-0.50", ">0.50"]
+    assert [hidden_bin(h, edges) for h in (0.1, 0.2, 0.2001, 0.35, 0.49, 0.5, 0.51)] == [
+        "<=0.20", "<=0.20", "0.20-0.35", "0.20-0.35", "0.35-0.50", "0.35-0.50", ">0.50"]
+
+
+def test_a_mixed_condition_is_scored_on_its_rgb_queries_and_broken_down(tmp_path: Path) -> None:
+    """Occluded-like truth (hidden fraction, occluder, floor, rgba per query): the headline is the RGB queries,
+    each bin and kind is scored on its own queries, the RGBA ones under input only."""
+    _, truth = write_case(tmp_path, n=12)
+    hidden = [0.12, 0.18, 0.25, 0.3, 0.34, 0.4, 0.45, 0.49, 0.15, 0.22, 0.38, 0.55]
+    for i, t in enumerate(truth):
+        t.update(hidden_fraction=hidden[i], occluder=("edge", "product", "gripper")[i % 3], floor="dark",
+                 rgba=i >= 9)
+    truth_path = tmp_path / "truth.jsonl"
+    truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth))
+    right = {0, 2, 3, 5, 9}  # every other query answered with another product
+    objects = sorted({t["object"] for t in truth})
+    predictions = write_predictions(tmp_path / "p.jsonl", [
+        {"image": t["image"], "object": t["object"] if i in right else objects[(objects.index(t["object"]) + 1) % 3],
+         "plane": t["plane"], "H": t["H"], "gallery_image": t["gallery_image"]} for i, t in enumerate(truth)])
+    headline = headline_queries(truth)
+    assert headline == list(range(9)) and headline_queries([{"rgba": True}]) == [0]
+    groups = breakdown_groups(truth, headline, [0.2, 0.35, 0.5])
+    assert groups["hidden_fraction"] == {"<=0.20": [0, 1, 8], "0.20-0.35": [2, 3, 4], "0.35-0.50": [5, 6, 7]}
+    assert groups["occluder"] == {"product": [1, 4, 7], "gripper": [2, 5, 8], "edge": [0, 3, 6]}
+    assert groups["input"] == {"rgb": list(range(9)), "rgba": [9, 10, 11]}
+    summary, rows, scored = score_condition(predictions, truth_path, headline, groups, 40)
+    assert summary["num_queries"] == 9 and summary["rec_acc"] == pytest.approx(4 / 9) and len(rows) == 12
+    assert summary["corner_err_px_median"] == pytest.approx(0.0, abs=1e-6)
+    assert scored["hidden_fraction"]["<=0.20"] == {"num_queries": 3, "rec_acc": pytest.approx(1 / 3),
+                                                   "corner_err_px_median": pytest.approx(0.0, abs=1e-6),
+                                                   "pose_acc_5px": pytest.approx(1 / 3)}
+    assert scored["hidden_fraction"]["0.35-0.50"]["rec_acc"] == pytest.approx(1 / 3)
+    assert scored["occluder"]["edge"]["rec_acc"] == pytest.approx(2 / 3)
+    assert scored["input"]["rgba"]["rec_acc"] == pytest.approx(1 / 3)
+    assert breakdown_groups([{"image": "a"}], [0], [0.2]) == {}  # other conditions have none
+
+    result = breakdown_result(groups, {"matl": scored}, [0.2, 0.35, 0.5], "rgb")
+    assert result["occluder"]["gripper"] == {"num_queries": 3, "methods": {"matl": {
+        "rec_acc": pytest.approx(2 / 3), "corner_err_px_median": pytest.approx(0.0, abs=1e-6),
+        "pose_acc_5px": pytest.approx(2 / 3)}}}
+    row = {"num_queries": 9, "num_objects": 3, "num_planes": 6, "image_size": 40, "checkpoint": "c", "data": {},
+           "query_seed": 7, "timing": None, "headline": "rgb", "breakdown": result,
+           "methods": {"matl": {"rec_acc": 4 / 9, "corner_err_px_median": 0.0, "pose_acc_5px": 4 / 9,
+                                "query_ms": None}}}
+    data, text = benchmark_table({"occluded": row}, ["matl"], "")
+    assert "| occluded | 9 | 0.444 / 0.0 / 0.444 / - |" in text and "occluded count its RGB queries only" in text
+    assert "| hidden_fraction <=0.20 | 3 | 0.333 / 0.0 / 0.333 |" in text and "| input rgba | 3 |" in text
+    assert data["breakdown"]["occluded"]["hidden_fraction"]["0.20-0.35"]["num_queries"] == 3
+
+
 # ------------------------------------------------------------------------------- whole path
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory, cache_dir: Path) -> Path:
@@ -193,6 +258,37 @@ def test_unseen_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> 
     with pytest.raises(MatlError, match="training catalog"):
         unseen(compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_arc", "queries=2", "methods=[matl]",
                                          f"out={tmp_path / 'arc'}", f"paths.cache_dir={cache_dir}"], tmp_path / "r"))
+
+
+@pytest.mark.slow
+def test_unseen_occluded_end_to_end(tiny_ckpt: Path, tmp_path: Path, cache_dir: Path) -> None:
+    out = tmp_path / "occluded"
+    cfg = compose_config("unseen", [f"ckpt={tiny_ckpt}", "data=synthetic_apc", "queries=12", f"out={out}",
+                                    "condition=[occluded]", "methods=[matl,sift]", "occluded.rgba_share=0.4",
+                                    "timing.queries=2", "timing.warmup=1", f"paths.cache_dir={cache_dir}"],
+                         tmp_path / "run")
+    result = unseen(cfg)
+    folder = out / "occluded"
+    truth = [json.loads(line) for line in (folder / "truth.jsonl").read_text().splitlines()]
+    rgb = [t for t in truth if not t["rgba"]]
+    assert len(truth) == 12 and 0 < len(rgb) < 12 and result["headline"] == "rgb"
+    assert result["num_queries"] == len(rgb) and result["num_queries_all"] == 12
+    assert [json.loads(line) for line in (folder / "truth_rgb.jsonl").read_text().splitlines()] == rgb
+    assert all((folder / t["mask_file"]).is_file() for t in truth) and result["files"]["masks"] == "masks"
+    for method in ("matl", "sift"):  # the headline is the RGB queries' score, the breakdown adds up to it
+        entry = result["methods"][method]
+        bins = result["breakdown"]["hidden_fraction"]
+        assert sum(b["num_queries"] for b in bins.values()) == len(rgb)
+        hits = sum(b["num_queries"] * b["methods"][method]["rec_acc"] for b in bins.values() if b["num_queries"])
+        assert entry["rec_acc"] == pytest.approx(hits / len(rgb))
+        assert f"truth={folder / 'truth_rgb.jsonl'}" in entry["commands"]["score"]
+        assert entry["query_ms"] > 0
+    assert set(result["breakdown"]["occluder"]) <= {"product", "gripper", "suction", "edge"}
+    assert result["breakdown"]["input"]["rgba"]["num_queries"] == 12 - len(rgb)
+    rows = (folder / "per_query.csv").read_text().splitlines()
+    assert len(rows) == 13 and "hidden_fraction" in rows[0] and "occluder" in rows[0]
+    table = (out / "benchmark.md").read_text()
+    assert f"| occluded | {len(rgb)} |" in table and "| hidden_fraction <=0.20 |" in table
 
 
 def test_seen_products_of_the_catalogs() -> None:

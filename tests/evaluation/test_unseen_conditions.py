@@ -133,6 +133,8 @@ def test_mask_files_are_rgba_with_an_imperfect_alpha(tmp_path: Path) -> None:
         assert (alpha != true).any()  # not the true mask
         assert (alpha & true).sum() / (alpha | true).sum() > 0.5  # but mostly overlapping it
         assert rgba[..., :3][~true].mean() > 5  # a real background under the alpha
+        assert record["mask_file"] == f"masks/{Path(record['image']).stem}.png"
+        assert np.array_equal(_rgba(tmp_path / record["mask_file"]), np.where(true, 255, 0).astype(np.uint8))
 
 
 def test_clutter_files_are_rgb_with_background_and_a_neighbour(tmp_path: Path) -> None:
@@ -144,6 +146,48 @@ def test_clutter_files_are_rgb_with_background_and_a_neighbour(tmp_path: Path) -
         assert rgb.shape == (40, 40, 3)
         assert (rgb[~true].max(axis=-1) > 0).mean() > 0.9  # no black background left
         assert record["neighbour"]["object"] != record["object"]
+        assert np.array_equal(_rgba(tmp_path / record["mask_file"]), np.where(true, 255, 0).astype(np.uint8))
+
+
+def test_occluded_files_hide_the_recorded_share_of_the_product(tmp_path: Path) -> None:
+    q = _queries(tmp_path, 16, tiny_set(size=64), None, "occluded.rgba_share=0.5")
+    truth = _write(q, "occluded", tmp_path / "o")
+    clean = _write(q, "clean", tmp_path / "c")
+    images, true_masks = warp_planes(q.cs, q.plane, q.query_H_canon)
+    kinds, rgba_seen = set(), set()
+    for record, c, image, true in zip(truth, clean, images, true_masks > 0.5, strict=True):
+        assert record["H"] == c["H"] and record["plane"] == c["plane"]  # the clean poses
+        assert 0.05 <= record["hidden_fraction"] <= 0.55 and record["floor"] in ("dark", "texture")
+        assert record["occlusion"]["target_fraction"] == pytest.approx(record["hidden_fraction"], abs=0.05)
+        kinds.add(record["occluder"])
+        rgba_seen.add(record["rgba"])
+        if record["occluder"] == "product":  # another held-out product lies on it
+            assert record["occlusion"]["product"]["object"] != record["object"]
+        visible = _rgba(tmp_path / "o" / record["mask_file"])
+        assert record["mask_file"] == f"masks/{Path(record['image']).stem}.png" and visible.dtype == np.uint8
+        assert set(np.unique(visible)) <= {0, 255} and visible.shape == (64, 64)
+        visible = visible > 0
+        assert not (visible & ~true).any()  # within the product
+        assert 1.0 - visible.sum() / true.sum() == pytest.approx(record["hidden_fraction"], abs=0.1)
+        pixels = _rgba(tmp_path / "o" / record["image"])
+        assert pixels.shape == ((64, 64, 4) if record["rgba"] else (64, 64, 3))
+        if record["rgba"]:  # alpha: the visible part only
+            assert np.array_equal(pixels[..., 3] > 127, visible)
+        hidden = true & ~visible
+        assert np.abs(pixels[..., :3].astype(float) - image * 255)[hidden].mean() > 5  # something else shows there
+    assert len(kinds) >= 3 and rgba_seen == {True, False}
+    again = _write(q, "occluded", tmp_path / "o2")  # seeded per query
+    assert again == truth
+    assert all((tmp_path / "o" / r["image"]).read_bytes() == (tmp_path / "o2" / r["image"]).read_bytes()
+               for r in truth)
+
+
+def test_occluded_needs_other_products_for_product_occluders(tmp_path: Path) -> None:
+    q = _queries(tmp_path, 2, tiny_set(objects=1))
+    with pytest.raises(MatlError, match=r"needs at least two products, or occluded\.kinds\.product=0"):
+        _write(q, "occluded", tmp_path / "o")
+    q = _queries(tmp_path, 2, tiny_set(objects=1), None, "occluded.kinds.product=0")
+    assert {r["occluder"] for r in _write(q, "occluded", tmp_path / "o2")} <= {"gripper", "suction", "edge"}
 
 
 @pytest.mark.slow
@@ -202,15 +246,27 @@ def test_training_refuses_the_heldout_photos(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------ options and table
 @pytest.mark.parametrize("override,match", [
-    ("condition=foggy", "condition=foggy is invalid: use one or a list of clean, photometric, mask, clutter, view, "
-                        "sizes or all"),
+    ("condition=foggy", "condition=foggy is invalid: use one or a list of clean, photometric, mask, clutter, "
+                        "occluded, view, sizes or all"),
     ("methods=[matl,orb]", r"methods=\['matl', 'orb'\] is invalid: use a list of matl, matl_refine, sift, sift_ecc, "
                            "lightglue, xfeat, xfeat_lighterglue$"),
     ("methods=[]", "methods=.* is invalid"),
     ("sizes.query=8", "sizes.query=8 is invalid"),
     ("photometric.gain=[2.0,1.0]", r"photometric.gain=\[2.0, 1.0\] is invalid: use \[low, high\]"),
+    ("occluded.hidden=[0.5,0.1]", r"occluded.hidden=\[0.5, 0.1\] is invalid: use \[low, high\]"),
+    ("occluded.hidden=[0.1,1.0]", r"occluded: occluder hidden=\[0.1, 1.0\] is invalid: use \[low, high\] with 0 <= "),
+    ("+occluded.kinds.hand=1", "occluded: occluder kind 'hand' is unknown: use product, gripper, suction or edge"),
+    ("occluded.kinds.edge=-1", "occluded: occluder kind weight edge=-1 is invalid: use a number >= 0"),
+    ("occluded.floors.dark=0", None),
+    ("+occluded.floors.carpet=1", r"occluded.floors=\{.*\} is invalid: use weights >= 0 of dark and texture"),
+    ("occluded.rgba_share=1.5", r"occluded.rgba_share=1.5 is invalid: use a fraction in \[0, 1\]"),
+    ("occluded.bins=[0.35,0.2]", r"occluded.bins=\[0.35, 0.2\] is invalid: use increasing upper edges in \(0, 1\)"),
+    ("occluded.dark_floor.level=[0.1,0.0]", r"occluded.dark_floor.level=\[0.1, 0.0\] is invalid"),
 ])
-def test_bad_options_are_one_line_errors(tmp_path: Path, override: str, match: str) -> None:
+def test_bad_options_are_one_line_errors(tmp_path: Path, override: str, match: str | None) -> None:
+    if match is None:  # a valid setting
+        _check(_cfg(tmp_path, override))
+        return
     with pytest.raises(MatlError, match=match) as error:
         _check(_cfg(tmp_path, override))
     assert "\n" not in str(error.value)
