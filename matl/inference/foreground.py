@@ -11,12 +11,20 @@ the foreground step gives it one, and the query is then used exactly as an RGBA 
   largest connected component that does not touch the crop's border is kept (the largest of all when
   every one touches it: a neighbour is cut by the edge, the product is held by the box) and its holes
   are filled.
+* :class:`LearnedForeground` (``foreground=learned``): the visibility network
+  (:mod:`matl.models.visibility`, ``python -m matl.train_foreground``) gives each pixel the probability that
+  it shows the visible print of the crop's target product (background, neighbours cut by the crop's edge
+  and occluders in front of it are out); it is thresholded, the largest connected component overlapping
+  the crop's centre region is kept (and further parts of it an occluder split off), and holes are filled
+  only where the probability is high, so an occluder's hole stays out. Its soft probability is
+  :meth:`LearnedForeground.probability`. It runs in onnxruntime (torch where onnxruntime is missing).
 * ``retry_insets``: when the answer of a GrabCut-masked query does not verify (its pose does not explain
   the query: ``1 - ZNCC`` above ``verify_max``, :mod:`matl.inference.verify`), GrabCut runs again from
   rectangles inset by these fractions of the crop's side (:meth:`GrabCutForeground.retries`): a product
   whose colours resemble the background, or a neighbour the 2 px band did not seed, is separated by a
   wider band. Each mask is recognised and verified like the first, and the query keeps the answer that
   verifies best (the first one's if none does better). A query whose first answer verifies costs nothing.
+  ``foreground=learned`` retries at other thresholds of the probability instead (``retry_thresholds``).
 * ``passes`` pose passes (:func:`pose_mask`): the first answer's plane, warped by its pose
   ``query_H_canon`` into the query, is a mask of the product's true outline; the query is masked again
   with it (intersected with the GrabCut alpha, so background within the pose's error stays out) and
@@ -42,9 +50,14 @@ import torch
 from matl.geometry import warp_image
 from matl.utils.errors import MatlError
 
-__all__ = ["FOREGROUNDS", "GrabCutForeground", "foreground_option", "mask_query", "pose_mask", "split_alpha"]
+__all__ = ["FOREGROUNDS", "ForegroundStep", "GrabCutForeground", "LearnedForeground", "foreground_option",
+           "mask_query", "pose_mask", "split_alpha"]
 
-FOREGROUNDS = ("none", "grabcut")
+FOREGROUNDS = ("none", "grabcut", "learned")
+#: values of ``foreground.runtime`` (``foreground=learned``)
+LEARNED_RUNTIMES = ("onnxruntime", "torch")
+#: largest difference accepted between the visibility network in onnxruntime and in torch (logits)
+ONNX_TOLERANCE = 1e-4
 
 
 def split_alpha(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -102,6 +115,11 @@ class GrabCutForeground:
                             f"black_level={self.black_level}, black_fraction={self.black_fraction}: use inset_px >= 1, "
                             "iterations >= 1, open_px >= 0, passes >= 0, alpha_band_px >= 0, black_level in [0, 1) "
                             "and black_fraction in (0, 1]")
+
+    @property
+    def retrying(self) -> bool:
+        """Whether a query whose answer does not verify is masked again (:meth:`retries`)."""
+        return bool(self.retry_insets)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """The alpha ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop in [0, 1].
@@ -188,7 +206,275 @@ class GrabCutForeground:
         return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
 
 
-def mask_query(step: GrabCutForeground | None, image: np.ndarray
+@dataclass
+class LearnedForeground:
+    """The visibility network's mask of the crop's target product; see the module docstring.
+
+    Args:
+        weights: a visibility checkpoint (``python -m matl.train_foreground publish=<file>``); None: the one
+            shipped in the package (:data:`matl.models.visibility.FOREGROUND_WEIGHTS`).
+        size: the working size the crop is resized to (a multiple of 8); None: the one the network was
+            trained at.
+        threshold: probability above which a pixel is the product's.
+        retry_thresholds: thresholds (each in (0, 1)) of the retries of a query whose first answer does not
+            verify (empty: no retries); the recognizer runs them, they need verification.
+        centre: side of the crop's centre region, a fraction of the crop's side: the kept component overlaps it.
+        min_part: a further component overlapping the centre region is kept when its area is at least this
+            fraction of the largest one's (an occluder across the product splits it; 1: the largest alone).
+        hole_area: a hole (a region left out that does not reach the crop's border) is filled when it is at most
+            this fraction of the mask's area ...
+        hole_probability: ... and its mean probability is at least this (an occluder's hole is near 0: kept out).
+        alpha_band_px: an RGBA query's alpha: the pixels within this many px of its edge are decided by the
+            network's mask (0: the alpha as given).
+        passes: pose passes after the first answer (as :class:`GrabCutForeground`'s).
+        black_level, black_fraction: a crop whose border band (2 px) has at least ``black_fraction`` of its pixels
+            at most ``black_level`` already has its mask (background 0, the training convention): used as given
+            (``black_fraction`` None: every crop goes through the network).
+        runtime: ``onnxruntime`` (the network exported in memory and checked against torch) or ``torch``.
+        threads: onnxruntime's intra-op threads; None: torch's thread count at each call.
+    """
+
+    weights: str | None = None
+    size: int | None = None
+    threshold: float = 0.5
+    retry_thresholds: tuple[float, ...] = (0.3, 0.7)
+    centre: float = 0.5
+    min_part: float = 0.2
+    hole_area: float = 0.05
+    hole_probability: float = 0.2
+    alpha_band_px: int = 0
+    passes: int = 0
+    black_level: float = 0.0
+    black_fraction: float | None = 0.5
+    runtime: str = "onnxruntime"
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            self.retry_thresholds = tuple(float(t) for t in self.retry_thresholds)
+        except (TypeError, ValueError):
+            self.retry_thresholds = (float("nan"),)  # reported below
+        if not all(0.0 < t < 1.0 for t in self.retry_thresholds):
+            raise MatlError(f"foreground learned: retry_thresholds={list(self.retry_thresholds)}: use probabilities in "
+                            "(0, 1), e.g. [0.3, 0.7], or [] for no retries")
+        if self.runtime not in LEARNED_RUNTIMES:
+            raise MatlError(f"foreground learned: runtime={self.runtime!r}: use {' or '.join(LEARNED_RUNTIMES)}")
+        if (not 0.0 < float(self.threshold) < 1.0 or not 0.0 < float(self.centre) <= 1.0
+                or not 0.0 < float(self.min_part) <= 1.0 or not 0.0 <= float(self.hole_area) <= 1.0
+                or not 0.0 <= float(self.hole_probability) <= 1.0 or int(self.alpha_band_px) < 0
+                or int(self.passes) < 0 or not 0.0 <= float(self.black_level) < 1.0
+                or (self.black_fraction is not None and not 0.0 < float(self.black_fraction) <= 1.0)
+                or (self.threads is not None and int(self.threads) < 1)
+                or (self.size is not None and (int(self.size) < 16 or int(self.size) % 8))):
+            raise MatlError(f"foreground learned: threshold={self.threshold}, centre={self.centre}, min_part="
+                            f"{self.min_part}, hole_area={self.hole_area}, hole_probability={self.hole_probability}, "
+                            f"alpha_band_px={self.alpha_band_px}, passes={self.passes}, "
+                            f"black_level={self.black_level}, black_fraction={self.black_fraction}, "
+                            f"threads={self.threads}, size={self.size}: use "
+                            "threshold in (0, 1), centre and min_part in (0, 1], hole_area and hole_probability in "
+                            "[0, 1], alpha_band_px >= 0, passes >= 0, black_level in [0, 1), black_fraction in "
+                            "(0, 1] or null, threads >= 1 or null, size a multiple of 8 (>= 16) or null")
+        from matl.models.visibility import load_visibility_net
+
+        given = self.__dict__.pop("_given", None)  # from_network's network
+        if given is not None:
+            net = given if self.size is None or int(self.size) == given.size else _resized(given, int(self.size))
+        else:
+            net = load_visibility_net(self.weights, self.size)  # a missing or wrong file: one line, now
+        self._net = net.eval()
+        self._sessions: dict[int, Any] = {}
+        self._graph: bytes | None = None
+        self.failure: str | None = None  # why onnxruntime is not used, when it is not
+
+    @classmethod
+    def from_network(cls, net: Any, **settings: Any) -> LearnedForeground:
+        """The step around a :class:`~matl.models.visibility.VisibilityNet` in memory (``settings`` as the
+        constructor's; ``weights`` then only names where it came from)."""
+        step = cls.__new__(cls)
+        step.__dict__["_given"] = net
+        step.__init__(**settings)
+        return step
+
+    @property
+    def retrying(self) -> bool:
+        """Whether a query whose answer does not verify is masked again (:meth:`retries`)."""
+        return bool(self.retry_thresholds)
+
+    @property
+    def working_size(self) -> int:
+        """The side the crop is resized to."""
+        return int(self._net.size)
+
+    # ------------------------------------------------------------------------------ the network
+    def _session(self) -> Any:
+        """The onnxruntime session at the current thread count, or None (torch answers; ``failure`` says why)."""
+        if self.runtime != "onnxruntime" or self.failure is not None:
+            return None
+        if self._graph is None:
+            try:
+                self._graph = self._export()
+            except Exception as error:  # onnx / onnxruntime missing, or an operator refused: torch answers
+                self.failure = f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
+                return None
+        threads = int(self.threads) if self.threads is not None else torch.get_num_threads()
+        if threads not in self._sessions:
+            self._sessions[threads] = _onnx_session(self._graph, threads)
+        return self._sessions[threads]
+
+    def _export(self) -> bytes:
+        """The network as ONNX bytes, checked against torch on random images within :data:`ONNX_TOLERANCE`."""
+        from matl.inference.export import onnx_bytes, require_onnxruntime
+
+        require_onnxruntime()
+        S = self.working_size
+        example = torch.rand(3, 3, S, S, generator=torch.Generator().manual_seed(0))
+        with torch.inference_mode(False), torch.no_grad():
+            graph = onnx_bytes(self._net, example[:1], ("logits",))
+            expected = self._net(example).numpy()
+        diff = float(np.abs(_onnx_session(graph, 1).run(None, {"images": example.numpy()})[0] - expected).max())
+        if not diff <= ONNX_TOLERANCE:
+            raise RuntimeError(f"the visibility network in onnxruntime differs from torch by {diff:.3g}")
+        return graph
+
+    @property
+    def runtime_in_use(self) -> str:
+        """What runs the network: ``onnxruntime`` or ``torch`` (asked for, or the fallback)."""
+        return "onnxruntime" if self._session() is not None else "torch"
+
+    def logits(self, rgb: np.ndarray) -> np.ndarray:
+        """The network's logits ``(H, W)`` float32 of a float RGB ``(H, W, 3)`` crop in [0, 1]: the crop resized to
+        the working size (area averaging; the aspect is not kept), the logits resized back (bilinear)."""
+        if rgb.ndim != 3 or rgb.shape[-1] != 3:
+            raise MatlError(f"foreground learned: expected an (H, W, 3) RGB crop, got shape {rgb.shape}")
+        h, w = rgb.shape[:2]
+        S = self.working_size
+        small = cv2.resize(np.ascontiguousarray(rgb, dtype=np.float32), (S, S), interpolation=cv2.INTER_AREA)
+        x = np.ascontiguousarray(np.clip(small, 0.0, 1.0).transpose(2, 0, 1)[None])
+        session = self._session()
+        if session is not None:
+            out = session.run(None, {"images": x})[0][0, 0]
+        else:
+            with torch.no_grad():
+                out = self._net(torch.from_numpy(x)).numpy()[0, 0]
+        return cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    def probability(self, rgb: np.ndarray) -> np.ndarray:
+        """The probability ``(H, W)`` float32 in [0, 1] that each pixel of a float RGB ``(H, W, 3)`` crop shows the
+        visible print of its target product (no threshold, no clean-up): what verification can weigh by."""
+        return (1.0 / (1.0 + np.exp(-self.logits(rgb)))).astype(np.float32)
+
+    # ------------------------------------------------------------------------------ masks
+    def segments(self, rgb: np.ndarray) -> bool:
+        """Whether the network runs on a float RGB ``(H, W, 3)`` crop: not on one whose 2 px border band is black
+        (``black_level``, ``black_fraction``: already segmented; never with ``black_fraction`` None) nor on one under
+        8 px."""
+        h, w = rgb.shape[:2]
+        if h < 8 or w < 8:
+            return False
+        if self.black_fraction is None:
+            return True
+        band = np.ones((h, w), bool)
+        band[2:h - 2, 2:w - 2] = False
+        return float((rgb[band].max(-1) <= self.black_level).mean()) < self.black_fraction
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        """The alpha ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop in [0, 1]; every pixel for a crop
+        that is already segmented (:meth:`segments`) or where nothing is found."""
+        if not self.segments(rgb):
+            return np.ones(rgb.shape[:2], np.float32)
+        mask = self.mask(self.probability(rgb), float(self.threshold))
+        return np.ones(rgb.shape[:2], np.float32) if mask is None else mask
+
+    def retries(self, rgb: np.ndarray) -> list[np.ndarray]:
+        """The masks ``(H, W)`` float32 in {0, 1} at each of ``retry_thresholds`` of a float RGB ``(H, W, 3)`` crop;
+        none for a crop used as given, and none where nothing is found."""
+        if not self.retry_thresholds or not self.segments(rgb):
+            return []
+        prob = self.probability(rgb)
+        masks = (self.mask(prob, t) for t in self.retry_thresholds)
+        return [m for m in masks if m is not None]
+
+    def mask(self, prob: np.ndarray, threshold: float) -> np.ndarray | None:
+        """The product's mask ``(H, W)`` float32 in {0, 1} from a probability map ``(H, W)``: above ``threshold``,
+        the components that overlap the centre region (the largest, and those of at least ``min_part`` of its
+        area), holes filled where small and probable (``hole_area``, ``hole_probability``); None when no component
+        overlaps the centre region."""
+        h, w = prob.shape
+        count, labels, stats, _ = cv2.connectedComponentsWithStats((prob > threshold).astype(np.uint8),
+                                                                   connectivity=8)
+        if count <= 1:
+            return None
+        y0, x0 = int((1.0 - float(self.centre)) / 2.0 * h), int((1.0 - float(self.centre)) / 2.0 * w)
+        centre = labels[y0:max(y0 + 1, h - y0), x0:max(x0 + 1, w - x0)]  # the centre region's labels
+        touching = np.unique(centre[centre > 0])
+        if len(touching) == 0:
+            return None
+        area = stats[touching, cv2.CC_STAT_AREA]
+        kept = touching[area >= float(self.min_part) * area.max()]
+        mask = np.isin(labels, kept)
+        if self.hole_area > 0:
+            mask = self._fill_probable_holes(mask, prob)
+        return mask.astype(np.float32)
+
+    def _fill_probable_holes(self, mask: np.ndarray, prob: np.ndarray) -> np.ndarray:
+        """``mask`` ``(H, W)`` bool with each hole (a 4-connected region outside it that does not reach the border)
+        filled when its area is at most ``hole_area`` x the mask's and its mean probability at least
+        ``hole_probability``."""
+        count, labels, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
+        if count <= 2:
+            return mask
+        edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        holes = np.setdiff1d(np.arange(1, count), edge)
+        if len(holes) == 0:
+            return mask
+        small = holes[stats[holes, cv2.CC_STAT_AREA] <= float(self.hole_area) * mask.sum()]
+        if len(small) == 0:
+            return mask
+        mean = np.bincount(labels.ravel(), weights=prob.ravel(), minlength=count) / np.maximum(
+            stats[:, cv2.CC_STAT_AREA], 1)
+        fill = small[mean[small] >= float(self.hole_probability)]
+        return mask | np.isin(labels, fill) if len(fill) else mask
+
+    def refine_alpha(self, rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+        """An RGBA query's alpha ``(H, W)`` with the pixels within ``alpha_band_px`` of its edge decided by the
+        network's mask (``rgb``: ``(H, W, 3)`` float in [0, 1], the pixels under the alpha); ``alpha`` itself with
+        ``alpha_band_px`` 0."""
+        band = int(self.alpha_band_px)
+        if band == 0:
+            return alpha
+        inside = (alpha > 0.5).astype(np.uint8)
+        near = (cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5) <= band) & \
+            (cv2.distanceTransform(inside, cv2.DIST_L2, 5) <= band)
+        found = self.probability(rgb) > float(self.threshold)
+        return np.where(near, found, inside > 0).astype(np.float32)
+
+
+def _resized(net: Any, size: int) -> Any:
+    """``net``'s weights in a :class:`~matl.models.visibility.VisibilityNet` of working size ``size``."""
+    from matl.models.visibility import VisibilityNet
+
+    other = VisibilityNet(**{**net.config, "size": size})
+    other.load_state_dict(net.state_dict())
+    return other.eval()
+
+
+def _onnx_session(graph: bytes, threads: int) -> Any:
+    """An onnxruntime CPU session of ``graph`` with ``threads`` intra-op threads (the query networks' options,
+    :mod:`matl.inference.runtime`: pool threads spin during a call and stop when it returns)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1")
+    options.add_session_config_entry("session.force_spinning_stop", "1")
+    return ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+
+
+#: the foreground steps of RGB queries without a mask
+ForegroundStep = GrabCutForeground | LearnedForeground
+
+
+def mask_query(step: ForegroundStep | None, image: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """A query as the model takes it, through the foreground step ``step`` (None: no step).
 
@@ -245,26 +531,29 @@ def pose_mask(canon: torch.Tensor, query_H_canon: torch.Tensor, size: int) -> to
     return warp_image(mask, query_H_canon.float(), (size, size)).clamp(0.0, 1.0)
 
 
-def foreground_option(value: Any) -> GrabCutForeground | None:
-    """The foreground step of a ``foreground`` value: ``none`` or None (no step), ``grabcut`` (the defaults),
-    a :class:`GrabCutForeground`, or a config node (``conf/foreground/*.yaml``: ``_target_`` null for none).
+def foreground_option(value: Any) -> ForegroundStep | None:
+    """The foreground step of a ``foreground`` value: ``none`` or None (no step), ``grabcut`` or ``learned`` (the
+    defaults), a :class:`GrabCutForeground` or :class:`LearnedForeground`, or a config node
+    (``conf/foreground/*.yaml``: ``_target_`` null for none).
 
     Raises:
         MatlError: any other value, or a node with a bad setting.
     """
-    if value is None or isinstance(value, GrabCutForeground):
+    if value is None or isinstance(value, (GrabCutForeground, LearnedForeground)):
         return value
     if isinstance(value, str):
         if value == "none":
             return None
         if value == "grabcut":
             return GrabCutForeground()
+        if value == "learned":
+            return LearnedForeground()
     elif isinstance(value, Mapping) and "_target_" in value:
         if value["_target_"] is None:
             return None
         from matl.utils.instantiate import instantiate_node
 
         step = instantiate_node(value, "foreground")
-        if isinstance(step, GrabCutForeground):
+        if isinstance(step, (GrabCutForeground, LearnedForeground)):
             return step
     raise MatlError(f"foreground={value!r} is invalid: use {' or '.join(FOREGROUNDS)} (RGB queries without a mask)")
