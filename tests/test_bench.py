@@ -75,6 +75,25 @@ def test_quick_bench_writes_every_key(tmp_path: Path, cache_dir: Path) -> None:
             assert 0 <= row["faiss_recall_at_1"] <= 1 and row["faiss_query_ms"] > 0
     assert "random unit embeddings" in saved["gallery_scaling_info"]["method"]
 
+    # camera crops without a mask (bench_quick: 4 crops of 2 held-out products), the same crops for every method
+    # through the public API, each at its fastest thread count; the shipped models whatever ckpt= says
+    camera, how = saved["query_ms_camera"], saved["camera_timing"]
+    methods = {"matl", "matl_refine", "matl_fast_refine", "sift_ransac"}
+    assert set(camera) == set(saved["query_ms_camera_batch"]) == methods and all(ms > 0 for ms in camera.values())
+    for key, ms in (("speedup_camera_vs_sift", camera), ("speedup_camera_vs_sift_batch",
+                                                         saved["query_ms_camera_batch"])):
+        assert set(saved[key]) == methods - {"sift_ransac"}
+        assert all(math.isclose(saved[key][m], ms["sift_ransac"] / ms[m]) for m in saved[key])
+    assert how["crops"] == 4 and sum(how["kinds"].values()) == 4 and how["products"] == 2 and how["batch"] == 2
+    assert set(how["threads"]) == methods and how["foreground"]["retry_insets"]  # the library's default: GrabCut
+    assert set(how["ms_by_threads"]["matl"]) == set(by) and all(0 <= a <= 1 for a in how["rec_acc"].values())
+    parts = timing["breakdown_camera"]
+    assert parts["decode_ms"] > 0 and set(parts) == {"decode_ms", "decode_ms_median", *methods - {"sift_ransac"}}
+    for name in ("matl", "matl_refine", "matl_fast_refine"):
+        stages = parts[name]["stages_ms"]
+        assert stages["decode"] == parts["decode_ms"] and stages["foreground"] > 0 and stages["networks"] > 0
+        assert math.isclose(sum(stages.values()), parts[name]["total_ms"], rel_tol=1e-9)
+
     # rendering needs OpenGL: a number, or null with the reason
     assert (saved["render_images_per_s"] or 0) > 0 or saved["render"].get("skipped")
     assert results["query_ms"] == q

@@ -1,16 +1,17 @@
 """Speed measurements against a reference measured in the same run: ``bench.json`` and a summary table.
 
-The library side of ``python -m matl.bench`` (what each number means: :mod:`matl.bench`).
+The library side of ``python -m matl.bench`` (what each number means: :mod:`matl.bench`); the other query paths
+timed beside ``query_ms.matl`` are in :mod:`matl.evaluation.speed_paths`, the camera crops (``query_ms_camera``) in
+:mod:`matl.evaluation.camera_speed`, ``gallery_scaling`` in :mod:`matl.evaluation.gallery_scaling`, the printed summary
+in :mod:`matl.evaluation.speed_summary`.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import platform
 import statistics
-import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -18,15 +19,24 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 from rich.console import Console
-from rich.table import Table
 
+from matl.evaluation.camera_speed import camera_options, measure_camera
+from matl.evaluation.gallery_scaling import default_faiss_node, fixed_query_ms, measure_scaling
+from matl.evaluation.speed_paths import (
+    extra_baseline_names,
+    measure_extra_baselines,
+    measure_int8,
+    measure_onnx,
+    measure_torch_runtime,
+)
+from matl.evaluation.speed_summary import print_summary
 from matl.utils.config import validate_config
-from matl.utils.errors import CONF_DIR, MatlError
+from matl.utils.errors import MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
-from matl.utils.timing import alternating_query_ms, batch_query_ms, median_query_ms
+from matl.utils.timing import alternating_query_ms, batch_query_ms, median_query_ms, synced
 
 # matl.models (kornia, Lightning) is imported inside the functions: a bad option is reported in a second
 
@@ -40,15 +50,6 @@ REQUIRED_KEYS = ("train_triplets_per_s", "data_time_fraction", "query_ms", "spee
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-def _synced(fn: Callable[[torch.Tensor], Any], device: torch.device) -> Callable[[torch.Tensor], Any]:
-    """``fn`` followed by a device sync, so GPU timings include the work and not just its launch."""
-    def call(x: torch.Tensor) -> Any:
-        out = fn(x)
-        _sync(device)
-        return out
-    return call
 
 
 def bench_options(cfg: DictConfig) -> DictConfig:
@@ -66,6 +67,7 @@ def bench_options(cfg: DictConfig) -> DictConfig:
     if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
         raise MatlError(f"bench.query_threads={threads} is invalid: use an integer >= 1, or null for the run's threads")
     extra_baseline_names(cfg, options)
+    camera_options(options)
     anchors = list(options.scaling_anchors)
     if any(not isinstance(a, int) or a < 1 for a in anchors):
         raise MatlError(f"bench.scaling_anchors={anchors} is invalid: use a list of integers >= 1")
@@ -180,7 +182,7 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
 
     # every method at each thread count (bench.query_threads, or 1..the run's), then at its fastest
     counts = thread_counts(options)
-    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
+    by_threads = {str(n): median_query_ms(synced(recognizer, device), queries, warmup, n) for n in counts}
     threads = int(min(by_threads, key=lambda n: by_threads[n]))
     query_ms["matl"] = by_threads[str(threads)]
     int8 = measure_int8(cfg, datamodule, model, queries, warmup, counts, device)  # quantize=int8 only
@@ -200,22 +202,22 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
             notes["refine_templates_mb"] = f"{refined.templates.nbytes / 1e6:.1f}"
         # timed at every thread count like each method, kept at its fastest (the refinement runs on one core: its
         # fastest count need not be the networks')
-        refine_by_threads = {str(n): median_query_ms(_synced(refined, device), queries, warmup, n) for n in counts}
+        refine_by_threads = {str(n): median_query_ms(synced(refined, device), queries, warmup, n) for n in counts}
         refine_threads = int(min(refine_by_threads, key=lambda n: refine_by_threads[n]))
         query_ms["matl_refine"] = refine_by_threads[str(refine_threads)]
         breakdown = measure_breakdown(model, recognizer, refined, queries, warmup, refine_threads, device)
         if int8.get("recognizer") is not None:  # quantize=int8: the int8 query path, refined the same way
             refined_int8 = RefinedRecognizer(int8["recognizer"], refiner, templates=refined.templates)
-            query_ms["matl_int8_refine"] = median_query_ms(_synced(refined_int8, device), queries, warmup,
+            query_ms["matl_int8_refine"] = median_query_ms(synced(refined_int8, device), queries, warmup,
                                                            int8["matl_int8_threads"])
     int8.pop("recognizer", None)
     torch_ms = measure_torch_runtime(recognizer, refined, queries, warmup, counts, device)  # runtime=onnxruntime
     query_ms.update(torch_ms.pop("query_ms"))
     if options.faiss and hasattr(recognizer, "use_search"):
-        faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
+        faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else default_faiss_node()
         try:
             recognizer.use_search(instantiate_node(faiss_node, "search"))
-            query_ms["matl_faiss"] = median_query_ms(_synced(recognizer, device), queries, warmup, threads)
+            query_ms["matl_faiss"] = median_query_ms(synced(recognizer, device), queries, warmup, threads)
         except MatlError as error:  # faiss not installed: reported, not fatal
             query_ms["matl_faiss"] = None
             notes["matl_faiss"] = str(error)
@@ -235,16 +237,16 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     # the headline numbers again, the methods alternating in bench.rounds rounds, each at its fastest thread count:
     # the ratios of query_ms then do not depend on how the shared machine's speed drifted between the passes above
     # (those stay in *_ms_by_threads)
-    turns = {"matl": (_synced(recognizer, device), threads), "sift_ransac": (lambda x: baseline(x.cpu()), sift_threads)}
+    turns = {"matl": (synced(recognizer, device), threads), "sift_ransac": (lambda x: baseline(x.cpu()), sift_threads)}
     if refined is not None:
-        turns["matl_refine"] = (_synced(refined, device), refine_threads)
+        turns["matl_refine"] = (synced(refined, device), refine_threads)
     query_ms.update(alternating_query_ms(turns, queries, warmup, int(options.rounds)))
     extra = measure_extra_baselines(cfg, options, gallery, cpu_queries, warmup, counts)  # bench.baselines
     query_ms.update(extra.pop("query_ms"))
     batched: dict[str, Any] = {}
     if options.batch:  # the crops of one camera frame in one call
-        methods = {"matl": _synced(recognizer, device), "matl_refine": refined and _synced(refined, device),
-                   "matl_int8_refine": refined_int8 and _synced(refined_int8, device), "sift_ransac": baseline}
+        methods = {"matl": synced(recognizer, device), "matl_refine": refined and synced(refined, device),
+                   "matl_int8_refine": refined_int8 and synced(refined_int8, device), "sift_ransac": baseline}
         batched = measure_batches(options, datamodule, {k: v for k, v in methods.items() if v is not None}, counts,
                                   device)
 
@@ -279,27 +281,6 @@ def measure_queries(cfg: DictConfig, options: DictConfig, datamodule: Any, model
     if notes:
         timing["notes"] = notes
     return {"query_ms": query_ms, "query_timing": timing, **batched}
-
-
-def measure_torch_runtime(recognizer: Any, refined: Any, queries: torch.Tensor, warmup: int, counts: list[int],
-                          device: torch.device) -> dict[str, Any]:
-    """With ``runtime=onnxruntime`` in place: ``query_ms.matl_torch`` (and ``matl_torch_refine``), the same
-    recognizer and queries with the query networks in torch (the compiled graph), each at every thread count and
-    kept at its fastest; empty otherwise."""
-    path = getattr(recognizer, "onnx", None)
-    if path is None:
-        return {"query_ms": {}}
-    recognizer.onnx = None  # restored below
-    try:
-        by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
-        threads = int(min(by_threads, key=lambda n: by_threads[n]))
-        query_ms = {"matl_torch": by_threads[str(threads)]}
-        if refined is not None:  # at every thread count, kept at its fastest (as matl_refine)
-            query_ms["matl_torch_refine"] = min(median_query_ms(_synced(refined, device), queries, warmup, n)
-                                                for n in counts)
-    finally:
-        recognizer.onnx = path
-    return {"query_ms": query_ms, "matl_torch_ms_by_threads": by_threads, "matl_torch_threads": threads}
 
 
 def measure_batches(options: DictConfig, datamodule: Any, methods: dict[str, Callable[[torch.Tensor], Any]],
@@ -396,161 +377,6 @@ def measure_breakdown(model: Any, recognizer: Any, refined: Any, queries: torch.
     return result
 
 
-def measure_int8(cfg: DictConfig, datamodule: Any, model: Any, queries: torch.Tensor, warmup: int,
-                 counts: list[int], device: torch.device) -> dict[str, Any]:
-    """``quantize=int8``: ``query_ms.matl_int8`` (the int8 query path of :mod:`matl.inference.quantize`,
-    calibrated on training positives, its own int8 gallery embeddings) on the same queries, at each thread
-    count like ``matl``, kept at its fastest; empty for ``quantize=none``. The float numbers are unchanged."""
-    from matl.inference.quantize import apply_quantize_option, datamodule_calibration, quantize_option
-
-    if quantize_option(cfg) == "none":
-        return {"query_ms": {}}
-    recognizer = model.build_recognizer(datamodule.gallery)
-    start = time.perf_counter()
-    applied = apply_quantize_option(recognizer, cfg, lambda: datamodule_calibration(datamodule))
-    build_s = time.perf_counter() - start
-    if applied["quantize"] == "none":
-        return {"query_ms": {"matl_int8": None}, "matl_int8_fallback": applied["quantize_fallback"]}
-    by_threads = {str(n): median_query_ms(_synced(recognizer, device), queries, warmup, n) for n in counts}
-    threads = int(min(by_threads, key=lambda n: by_threads[n]))
-    return {"query_ms": {"matl_int8": by_threads[str(threads)]}, "recognizer": recognizer,
-            "matl_int8_ms_by_threads": by_threads,
-            "matl_int8_threads": threads, "matl_int8_build_s": build_s,
-            "matl_int8_path": "int8 (FX static quantisation, oneDNN; TorchScript, frozen) + float warps, search, pose"}
-
-
-def measure_onnx(model: Any, gallery: Any, queries: torch.Tensor, warmup: int, counts: list[int],
-                 device: torch.device) -> dict[str, Any]:
-    """``query_ms.matl_onnx``: the query network of ``matl.export format=onnx`` in onnxruntime (CPU), batch of 1.
-
-    The model is exported to a temporary folder (checked against the eager model as every export), the
-    gallery embedded by the exported gallery network, and the query timed as ``query_ms.matl``: the same
-    queries and warm-up, at each thread count (onnxruntime's intra-op threads, and torch's for the rest),
-    kept at its fastest. The timed call is a :class:`~matl.models.recognizer.TensorRecognizer` call whose
-    networks step (``embed_queries``) is the onnxruntime session: the exact gallery search (torch) on
-    the ONNX embeddings and the pose are the eager query's own code. Without onnxruntime, on a GPU run
-    or for a model without an embedding network, ``query_ms`` has no ``matl_onnx`` and
-    ``matl_onnx_skipped`` says why.
-    """
-    from matl.inference.export import OnnxNetwork, export_inference, require_onnxruntime
-
-    try:
-        ort = require_onnxruntime()
-    except MatlError as error:
-        return {"query_ms": {}, "matl_onnx_skipped": str(error)}
-    if device.type != "cpu":
-        return {"query_ms": {}, "matl_onnx_skipped": f"device={device}: onnxruntime is timed on CPU runs only"}
-    feature_net, stn = getattr(model, "feature_net", None), getattr(model, "stn", None)
-    if feature_net is None or not hasattr(model, "build_recognizer"):
-        return {"query_ms": {}, "matl_onnx_skipped": f"{type(model).__name__} has no embedding network to export"}
-    with tempfile.TemporaryDirectory(prefix="matl_bench_onnx_") as folder:
-        start = time.perf_counter()
-        try:
-            info = export_inference(feature_net, stn, int(gallery.image_size), folder, "onnx")
-        except Exception as error:  # an operator onnxruntime refuses, or a check above tolerance: reported
-            return {"query_ms": {}, "matl_onnx_skipped": f"ONNX export failed: {' '.join(str(error).split())[:300]}"}
-        export_s = time.perf_counter() - start
-        gallery_net = OnnxNetwork(Path(folder) / "gallery_net.onnx")
-        networks = {n: OnnxNetwork(Path(folder) / "query_net.onnx", threads=n) for n in counts}
-    model.eval()
-    recognizer = model.build_recognizer(gallery)
-    images = gallery.images.cpu()
-    recognizer.gallery_features = torch.cat([gallery_net(images[i:i + 256]) for i in range(0, len(images), 256)])
-
-    def onnx_query_path(net: OnnxNetwork) -> Callable[[torch.Tensor], tuple[Any, ...]]:
-        """``TensorRecognizer.embed_queries`` by ``net``:
-        ``(embedding, query_H_anchor or None, degenerate, warped)``."""
-        if stn is not None:
-            return net
-        return lambda q: (net(q), None, torch.zeros(len(q), dtype=torch.bool), q)
-
-    by_threads = {}
-    for n, net in networks.items():
-        recognizer.embed_queries = onnx_query_path(net)  # the networks step of TensorRecognizer.forward
-        by_threads[str(n)] = median_query_ms(recognizer, queries.cpu(), warmup, n)
-    threads = int(min(by_threads, key=lambda n: by_threads[n]))
-    with torch.no_grad():
-        eager = model.build_recognizer(gallery)(queries)
-        same = float((recognizer(queries.cpu()).gallery_index == eager.gallery_index.cpu()).float().mean())
-    return {"query_ms": {"matl_onnx": by_threads[str(threads)]}, "matl_onnx_ms_by_threads": by_threads,
-            "matl_onnx_threads": threads, "matl_onnx_export_s": export_s,
-            "matl_onnx_max_abs_diff": info["max_abs_diff_by_output"], "matl_onnx_same_answers": same,
-            "matl_onnx_path": f"onnxruntime {ort.__version__} CPUExecutionProvider (query_net.onnx and "
-                              "gallery_net.onnx of matl.export format=onnx) + the recognizer's exact search and pose "
-                              "(torch); matl_onnx_same_answers: share of the queries whose nearest anchor is eager's"}
-
-
-def extra_baseline_names(cfg: DictConfig, options: DictConfig) -> list[str]:
-    """``bench.baselines``: names of ``baselines.<name>`` nodes (``conf/bench.yaml`` composes them from
-    ``conf/baseline/``), each timed as ``query_ms.<name>``; checked (a one-line error names the choices)."""
-    value = options.get("baselines") or []
-    names = list(value) if isinstance(value, (list, tuple, ListConfig)) else [value]
-    known = sorted((cfg.get("baselines") or {}).keys())
-    bad = [n for n in names if not isinstance(n, str) or n not in known]
-    if bad or len(set(names)) != len(names):
-        raise MatlError(f"bench.baselines={names} is invalid: use a list of distinct names among {known} (extra "
-                        "baselines timed on the same queries; add another as baseline@baselines.<name> in bench.yaml)")
-    return [str(n) for n in names]
-
-
-def _missing_package(error: BaseException) -> ModuleNotFoundError | None:
-    """The ``ModuleNotFoundError`` behind a failed build (an optional package not installed), else None."""
-    seen: BaseException | None = error
-    while seen is not None:
-        if isinstance(seen, ModuleNotFoundError):
-            return seen
-        seen = seen.__cause__ or seen.__context__
-    return None
-
-
-def measure_extra_baselines(cfg: DictConfig, options: DictConfig, gallery: Any, queries: torch.Tensor, warmup: int,
-                            counts: list[int]) -> dict[str, Any]:
-    """``query_ms.<name>`` of every ``bench.baselines`` entry, timed exactly as ``query_ms.sift_ransac``: the same
-    gallery (indexed once, not timed) and queries, one :class:`~matl.baselines.recognizer.BaselineRecognizer` call
-    per query at each thread count (torch's and OpenCV's), kept at its fastest.
-
-    A baseline whose optional package is not installed gets ``query_ms.<name>: null`` and the install hint in
-    ``baselines_skipped``; any other failure to build it is an error.
-
-    Returns:
-        ``{"query_ms": {name: ms}, "baselines": {name: {ms_by_threads, threads, index_seconds, options}},
-        "baselines_skipped": {name: reason}}`` (the last two only when non-empty).
-    """
-    from matl.baselines.recognizer import BaselineRecognizer, build_baseline
-
-    query_ms: dict[str, float | None] = {}
-    details: dict[str, Any] = {}
-    skipped: dict[str, str] = {}
-    for name in extra_baseline_names(cfg, options):
-        node = cfg.baselines[name]
-        try:
-            matcher = build_baseline(node, name)
-        except MatlError as error:
-            if _missing_package(error) is None:
-                raise
-            query_ms[name], skipped[name] = None, str(error)
-            log.info("bench: %s skipped: %s", name, error)
-            continue
-        log.info("bench: query_ms.%s", name)
-        start = time.perf_counter()
-        baseline = BaselineRecognizer(matcher, gallery)  # indexes the gallery once (not part of query_ms)
-        index_s = time.perf_counter() - start
-        by_threads = {}
-        for n in counts:
-            by_threads[str(n)] = median_query_ms(baseline, queries, warmup, n)
-        threads = int(min(by_threads, key=lambda n: by_threads[n]))
-        query_ms[name] = by_threads[str(threads)]
-        details[name] = {"ms_by_threads": by_threads, "threads": threads, "index_seconds": index_s,
-                         "options": {k: v for k, v in OmegaConf.to_container(node, resolve=True).items()
-                                     if k != "_target_"}}
-    out: dict[str, Any] = {"query_ms": query_ms}
-    if details:
-        out["baselines"] = details
-    if skipped:
-        out["baselines_skipped"] = skipped
-    return out
-
-
 def thread_counts(options: DictConfig) -> list[int]:
     """The thread counts single queries are timed at: ``[bench.query_threads]``, or 1..the run's (null)."""
     value = options.get("query_threads")
@@ -567,78 +393,6 @@ def _query_path(recognizer: Any, query: torch.Tensor) -> str:
     if compiled is not None and compiled.failure is not None:
         return f"eager infer (compiled path failed: {compiled.failure})"
     return "eager infer" if getattr(recognizer, "fast", False) else "eager forward"
-
-
-def _default_faiss_node() -> DictConfig:
-    """``conf/search/faiss.yaml``, for the faiss timing when the run's search is exact."""
-    path = CONF_DIR / "search" / "faiss.yaml"
-    node = OmegaConf.load(path)
-    assert isinstance(node, DictConfig)
-    return node
-
-
-# ------------------------------------------------------------------------------- gallery scaling
-def fixed_query_ms(model: Any, recognizer: Any, queries: torch.Tensor, warmup: int, device: torch.device,
-                   threads: int | None = None) -> float:
-    """Median milliseconds of ``c(s(query))`` for one query (the part of a query that does not
-    depend on the gallery size), by the recognizer's own path (:meth:`TensorRecognizer.embed_queries`)."""
-    embed_one = getattr(recognizer, "embed_queries", None)
-    if embed_one is None:  # a recognizer without an embedding path (the STN classifier): its networks
-        def embed_one(q: torch.Tensor) -> torch.Tensor:
-            warped = model.stn(q).warped if getattr(model, "stn", None) is not None else q
-            return model.feature_net(warped)
-    return median_query_ms(_synced(embed_one, device), queries, warmup, threads)
-
-
-def measure_scaling(cfg: DictConfig, options: DictConfig, model: Any, fixed_ms: float,
-                    device: torch.device, threads: int | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Search latency per gallery size, exact and (when installed) FAISS; see the module docstring."""
-    from matl.inference.options import search_name
-    from matl.models.search import ExactSearch, FaissSearch, require_faiss
-
-    dim = int(getattr(model.feature_net, "embedding_dim", 0)) or int(
-        model.feature_net(torch.zeros(1, 3, model.image_size, model.image_size, device=device)).shape[1])
-    count, warmup = int(options.scaling_queries), int(options.scaling_warmup)
-    use_faiss, faiss_note = bool(options.faiss), None
-    if use_faiss:
-        try:
-            require_faiss()
-        except MatlError as error:
-            use_faiss, faiss_note = False, str(error)
-    faiss_node = cfg.search if search_name(cfg.get("search")) == "faiss" else _default_faiss_node()
-    faiss_kwargs = {k: v for k, v in OmegaConf.to_container(faiss_node, resolve=True).items()
-                    if not k.startswith("_")}
-    g = torch.Generator().manual_seed(int(cfg.seed))
-    rows = []
-    for anchors in [int(a) for a in options.scaling_anchors]:
-        gallery = torch.nn.functional.normalize(torch.randn(anchors, dim, generator=g), dim=1)
-        truth = torch.randint(anchors, (warmup + count,), generator=g)
-        # a query is its gallery entry moved by noise of norm ~0.3 (typical of a recognised query)
-        noise = torch.randn(warmup + count, dim, generator=g) * (0.3 / math.sqrt(dim))
-        queries = torch.nn.functional.normalize(gallery[truth] + noise, dim=1)
-        gallery, queries = gallery.to(device), queries.to(device)
-        exact = ExactSearch(gallery)
-        search_ms = median_query_ms(_synced(lambda q, e=exact: e.search(q), device), queries, warmup, threads)
-        exact_index = exact.search(queries)[0]
-        row: dict[str, Any] = {"anchors": anchors, "query_ms": fixed_ms + search_ms, "search_ms": search_ms}
-        if use_faiss:
-            start = time.perf_counter()
-            index = FaissSearch(gallery, **faiss_kwargs)
-            row["faiss_build_s"] = time.perf_counter() - start
-            row["faiss_search_ms"] = median_query_ms(lambda q, i=index: i.search(q), queries, warmup, threads)
-            row["faiss_query_ms"] = fixed_ms + row["faiss_search_ms"]
-            row["faiss_recall_at_1"] = float((index.search(queries)[0] == exact_index).float().mean())
-        rows.append(row)
-    info = {
-        "embedding_dim": dim, "queries": count, "warmup": warmup, "fixed_query_ms": fixed_ms, "threads": threads,
-        "method": "query_ms = fixed_query_ms (STN + feature net of one real query, measured once) + search_ms "
-                  "(median single-query search over random unit embeddings of the model's dimension; queries "
-                  "are gallery entries plus noise of norm ~0.3)",
-        "faiss": ({k: v for k, v in faiss_kwargs.items()} if use_faiss else None),
-    }
-    if faiss_note:
-        info["faiss_note"] = faiss_note
-    return rows, info
 
 
 # --------------------------------------------------------------------------------------- render
@@ -725,6 +479,11 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
         results["speedup_int8_vs_sift_refine"] = (q["sift_ransac"] / q["matl_int8_refine"] if q.get("sift_ransac")
                                                   and q.get("matl_int8_refine") else None)
 
+    camera = measure_camera(cfg, options, device, thread_counts(options))  # bench.camera: RGB crops, no mask
+    if camera:
+        results["query_timing"]["breakdown_camera"] = camera.pop("breakdown_camera")
+        results.update(camera)
+
     log.info("bench: gallery scaling")
     queries = _query_images(datamodule, int(options.query_warmup) + int(options.queries), device)
     with torch.no_grad():
@@ -740,99 +499,28 @@ def run_bench(cfg: DictConfig, console: Console | None = None) -> dict[str, Any]
     results["config"] = {"bench": OmegaConf.to_container(options, resolve=True), "data": _data_name(cfg),
                          "image_size": int(cfg.data.image_size), "N": int(cfg.N), "seed": int(cfg.seed),
                          "ckpt": cfg.get("ckpt"), "quantize": cfg.get("quantize", "none"),
-                         "runtime": cfg.get("runtime", "torch")}
+                         "runtime": cfg.get("runtime", "torch"), "foreground": _choice("foreground")}
     write_json(out_dir / "bench.json", results)
     print_summary(results, console or Console())
     return results
 
 
-def _data_name(cfg: DictConfig) -> str:
+def _choice(group: str) -> str | None:
+    """The run's choice of a config group (None: called as a function, or the group left at null)."""
     try:
         from hydra.core.hydra_config import HydraConfig
 
-        return str(HydraConfig.get().runtime.choices.get("data"))
+        choice = HydraConfig.get().runtime.choices.get(group)
     except ValueError:  # called as a function (tests)
+        return None
+    return None if choice is None else str(choice)
+
+
+def _data_name(cfg: DictConfig) -> str:
+    choice = _choice("data")
+    if choice is None:
         source = cfg.data.get("source")
         return str(source.get("catalog")) if source is not None and source.get("catalog") else "?"
+    return choice
 
 
-def _fmt(value: Any, digits: int = 2) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:,.{digits}f}"
-    return str(value)
-
-
-def print_summary(results: dict[str, Any], console: Console) -> None:
-    """Two rich tables: the headline numbers and the gallery scaling."""
-    q, t = results["query_ms"], results["query_timing"]
-    table = Table(title=f"matl.bench{' (quick: smoke run, not a measurement)' if results['quick'] else ''}")
-    table.add_column("measure")
-    table.add_column("value", justify="right")
-    table.add_column("note")
-    train = results["train"]
-    table.add_row("train_triplets_per_s", _fmt(results["train_triplets_per_s"], 1),
-                  f"batch {train['batch_size']}, {train['image_size']} px, N={train['N']}")
-    table.add_row("data_time_fraction", _fmt(results["data_time_fraction"], 3), "share of a step in materialize")
-    table.add_row("query_ms.matl", _fmt(q.get("matl")),
-                  f"{t['gallery_anchors']} anchors; {t['weights'].split(':')[0]}; {t['matl_threads']} thread(s); "
-                  f"runtime={t.get('runtime')}" + (f" (fallback: {t['runtime_fallback']})"
-                                                   if t.get("runtime_fallback") else ""))
-    if "matl_refine" in q:
-        added = results.get("refine_added_ms")
-        # Signed: a model with an alignment stage skips it on the refined path, so this can be negative.
-        added_note = "-" if added is None else f"{added:+.2f}"
-        table.add_row("query_ms.matl_refine", _fmt(q.get("matl_refine")),
-                      f"{added_note} ms against matl; {t.get('matl_refine_threads')} thread(s)")
-        table.add_row("speedup_vs_sift_refine", _fmt(results.get("speedup_vs_sift_refine"), 1),
-                      "sift_ransac / matl_refine")
-    for name in ("matl_torch", "matl_torch_refine"):
-        if name in q:
-            table.add_row(f"query_ms.{name}", _fmt(q.get(name)), "the same with runtime=torch (compiled graph)")
-    if "matl_faiss" in q:
-        table.add_row("query_ms.matl_faiss", _fmt(q.get("matl_faiss")), t.get("notes", {}).get("matl_faiss", ""))
-    table.add_row("query_ms.sift_ransac", _fmt(q.get("sift_ransac")),
-                  f"same {t['queries']} queries; {t['sift_threads']} thread(s)")
-    table.add_row("speedup_vs_sift", _fmt(results["speedup_vs_sift"], 1), "sift_ransac / matl")
-    for name, ms in q.items():  # bench.baselines
-        if name in t.get("baselines", {}) or name in t.get("baselines_skipped", {}):
-            table.add_row(f"query_ms.{name}", _fmt(ms), t.get("baselines_skipped", {}).get(name)
-                          or f"same {t['queries']} queries; {t['baselines'][name]['threads']} thread(s)")
-    if "matl_onnx" in q or "matl_onnx_skipped" in t:
-        table.add_row("query_ms.matl_onnx", _fmt(q.get("matl_onnx")), t.get("matl_onnx_skipped")
-                      or f"onnxruntime; {t.get('matl_onnx_threads')} thread(s)")
-    if "matl_int8" in q:
-        table.add_row("query_ms.matl_int8", _fmt(q.get("matl_int8")),
-                      t.get("matl_int8_fallback") or f"quantize=int8; {t.get('matl_int8_threads')} thread(s)")
-        table.add_row("speedup_int8_vs_sift", _fmt(results.get("speedup_int8_vs_sift"), 1), "sift_ransac / matl_int8")
-    if "matl_int8_refine" in q:
-        table.add_row("query_ms.matl_int8_refine", _fmt(q.get("matl_int8_refine")), "int8 query path + refine=true")
-        table.add_row("speedup_int8_vs_sift_refine", _fmt(results.get("speedup_int8_vs_sift_refine"), 1),
-                      "sift_ransac / matl_int8_refine")
-    batched = results.get("query_ms_batch") or {}
-    if batched:
-        size = results["batch_timing"]["batch"]
-        table.add_row(f"query_ms_batch ({size} a call)", "", ", ".join(f"{k} {_fmt(v)}" for k, v in batched.items()))
-        for key in ("speedup_vs_sift_refine_batch", "speedup_vs_sift_int8_refine_batch"):
-            if key in results:
-                table.add_row(key, _fmt(results[key], 1), f"per query, {size} queries a call")
-    parts = t.get("breakdown") or {}
-    if parts:
-        names = [k for k in ("networks_ms", "stn_ms", "features_ms", "search_ms", "align_ms", "refine_ms")
-                 if k in parts]
-        levels = " / ".join(_fmt(v, 3) for v in parts.get("refine_level_ms", []))
-        table.add_row("breakdown (ms)", "", ", ".join(f"{k[:-3]} {_fmt(parts[k], 3)}" for k in names)
-                      + (f"; refine per level (finest first) {levels}" if levels else ""))
-    table.add_row("render_images_per_s", _fmt(results["render_images_per_s"], 1),
-                  results["render"].get("skipped", f"{results['render'].get('objects')} objects, canonical"))
-    console.print(table)
-    fixed = _fmt(results["gallery_scaling_info"]["fixed_query_ms"])
-    scaling = Table(title=f"gallery scaling (fixed c(s(q)) {fixed} ms + search on random embeddings)")
-    for name in ("anchors", "query_ms", "search_ms", "faiss_query_ms", "faiss_recall_at_1", "faiss_build_s"):
-        scaling.add_column(name, justify="right")
-    for row in results["gallery_scaling"]:
-        scaling.add_row(f"{row['anchors']:,}", _fmt(row["query_ms"]), _fmt(row["search_ms"], 3),
-                        _fmt(row.get("faiss_query_ms")), _fmt(row.get("faiss_recall_at_1"), 3),
-                        _fmt(row.get("faiss_build_s")))
-    console.print(scaling)

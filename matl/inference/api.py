@@ -73,6 +73,7 @@ from matl.models.prediction import Prediction
 from matl.models.recognizer import TensorRecognizer, embed
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
+from matl.utils.timing import StageTimer, stage
 
 __all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model", "shipped_checkpoint"]
 
@@ -329,6 +330,8 @@ class Recognizer:
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
         self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
+        #: filled with each stage's milliseconds while set (:meth:`time_stages`); None: no timing, no cost
+        self.stage_timer: StageTimer | None = None
 
     # -------------------------------------------------------------------------------- construction
     @classmethod
@@ -643,6 +646,27 @@ class Recognizer:
                 "runtime": "torch" if self.runtime_fallback else self.runtime,
                 "runtime_fallback": self.runtime_fallback}
 
+    def time_stages(self, timer: StageTimer | None) -> None:
+        """Fill ``timer`` (:class:`matl.utils.timing.StageTimer`) with the milliseconds of each stage of the calls
+        that follow: ``foreground``, ``framing`` (to the model frame), ``networks``, ``search``, ``alignment``,
+        ``refinement``, ``verification`` (the further candidates' networks and poses included) and ``retries``
+        (``foreground.retry_insets``: everything a retried query runs again); None stops it and leaves no cost.
+        Time the stages after enrolling: a gallery changed afterwards is answered untimed inside the networks."""
+        with self._lock:
+            if self.stage_timer is not None:
+                self.stage_timer.unwrap()
+            self.stage_timer = timer
+            if timer is None:
+                return
+            predictor, _ = self._build()
+            inner = self._gallery_recognizer()
+            timer.wrap(inner, "embed_queries", "networks")
+            timer.wrap(inner.search, "search", "search")
+            if getattr(inner, "align", None) is not None:
+                timer.wrap(inner.align, "infer", "alignment")
+            if predictor is not inner:
+                timer.wrap(predictor, "refiner", "refinement")
+
     def predict_details(self, arrays: list[np.ndarray]) -> tuple[list[Match], Prediction, torch.Tensor]:
         """:meth:`predict` for float RGB ``(H, W, 3)`` or RGBA ``(H, W, 4)`` arrays in [0, 1] (alpha = mask),
         plus the model-frame prediction and the model-size query images it came from (for pictures and
@@ -677,10 +701,13 @@ class Recognizer:
         """Matches of float RGB ``(H, W, 3)`` arrays, the model-frame prediction they came from and the
         model-size queries."""
         recognizer, _ = self._build()
-        prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
+        with stage(self.stage_timer, "foreground"):
+            prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification = self._answer(recognizer, prepared)
         if verification is not None and self.foreground is not None and self.foreground.retry_insets:
-            pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries, verification)
+            with stage(self.stage_timer, "retries"):
+                pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries,
+                                                                       verification)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None
@@ -710,15 +737,17 @@ class Recognizer:
         """The verified model-frame answer of queries prepared by :func:`mask_query`: the prediction (re-ranked
         by verification), the model-size queries ``(B, 3, S, S)`` of the last foreground pass, ``model_H_file``
         ``(B, 3, 3)`` and the verification (None without one)."""
-        fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
-        queries = torch.stack([f[0] for f in fitted]).to(self.device)
+        with stage(self.stage_timer, "framing"):
+            fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
+            queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
         pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
                                                 [p[2] for p in prepared])
         verification = None
         if self._verifying() and pred.query_H_anchor is not None:
-            verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
-            pred = self._reranked(pred, verification)
+            with stage(self.stage_timer, "verification"):
+                verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
+                pred = self._reranked(pred, verification)
         return pred, queries, query_H_file, verification
 
     def _foreground_retries(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
@@ -733,7 +762,9 @@ class Recognizer:
         for i, (_, rgb, found) in enumerate(prepared):
             if found is None or bool(verification.verified[i]):
                 continue
-            for mask in self.foreground.retries(rgb):
+            with stage(self.stage_timer, "foreground"):
+                masks = self.foreground.retries(rgb)
+            for mask in masks:
                 retried.append(i)
                 again.append((np.ascontiguousarray(rgb * mask[..., None]), rgb, mask))
         if not again:
