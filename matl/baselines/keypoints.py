@@ -26,7 +26,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -38,6 +38,7 @@ __all__ = [
     "ImageFeatures",
     "KeypointMatcher",
     "MatchResult",
+    "RansacVoting",
     "RansacVotingMatcher",
     "TentativeMatches",
     "check_image_batch",
@@ -421,6 +422,55 @@ def extract_in_batches(extract_batch: Callable[[torch.Tensor], list[ImageFeature
     return out
 
 
+@dataclass
+class RansacVoting:
+    """The RANSAC vote of every keypoint baseline, by its config keys (``baseline.<key>``).
+
+    Each matcher takes these keywords beside its own (``SiftRansacMatcher(ratio=0.8, top_k=10)``) and
+    votes with :meth:`vote`, so the settings, their checks and the call are written once.
+
+    Attributes:
+        ransac_reproj_threshold: RANSAC inlier threshold in query pixels.
+        min_inliers: fewest inliers for a recognition; below it the query is unmatched (-1). At least 4
+            are always needed (a homography).
+        top_k: RANSAC only on the ``top_k`` gallery images with most tentative matches (an approximation);
+            None verifies every image that could win (exact). A matcher that shortlists the gallery before
+            matching (LightGlue, XFeat's LighterGlue) uses it for its shortlist instead.
+        ransac_max_iters: RANSAC iterations (OpenCV's default 2000).
+        ransac_confidence: RANSAC confidence (OpenCV's default 0.995).
+        ransac_method: the robust estimator, a key of :data:`RANSAC_METHODS`: ``"ransac"`` (the paper's
+            ``cv2.RANSAC``) or a faster USAC one.
+    """
+
+    ransac_reproj_threshold: float = 3.0
+    min_inliers: int = 4
+    top_k: int | None = None
+    ransac_max_iters: int = 2000
+    ransac_confidence: float = 0.995
+    ransac_method: str = "ransac"
+
+    def __post_init__(self) -> None:
+        if self.ransac_method not in RANSAC_METHODS:
+            raise ValueError(f"ransac_method must be one of {sorted(RANSAC_METHODS)}, got {self.ransac_method!r}")
+        if self.top_k is not None and int(self.top_k) < 1:
+            raise ValueError(f"top_k must be a positive integer or null, got {self.top_k}")
+        if self.ransac_reproj_threshold <= 0:
+            raise ValueError(f"ransac_reproj_threshold must be > 0, got {self.ransac_reproj_threshold}")
+        self.ransac_reproj_threshold = float(self.ransac_reproj_threshold)
+        self.min_inliers = int(self.min_inliers)
+        self.top_k = None if self.top_k is None else int(self.top_k)
+        self.ransac_max_iters = int(self.ransac_max_iters)
+        self.ransac_confidence = float(self.ransac_confidence)
+
+    def vote(self, query_keypoints: np.ndarray, gallery_keypoints: list[np.ndarray], matches: TentativeMatches,
+             top_k: int | None) -> tuple[int, np.ndarray, int]:
+        """:func:`vote_by_ransac` with these settings; ``top_k`` as the matcher hands it on (see the attribute)."""
+        return vote_by_ransac(query_keypoints, gallery_keypoints, matches,
+                              reproj_threshold=self.ransac_reproj_threshold, min_inliers=self.min_inliers,
+                              top_k=top_k, max_iters=self.ransac_max_iters, confidence=self.ransac_confidence,
+                              method=RANSAC_METHODS[self.ransac_method])
+
+
 class RansacVotingMatcher(ABC):
     """Gallery indexing, per-query matching and RANSAC voting shared by the keypoint baselines.
 
@@ -428,37 +478,11 @@ class RansacVotingMatcher(ABC):
     (correspondences of one query with the indexed gallery).
 
     Args:
-        ransac_reproj_threshold: RANSAC inlier threshold in pixels.
-        min_inliers: fewest RANSAC inliers for a recognition (at least 4 are always needed).
-        top_k: RANSAC only on the ``top_k`` gallery images with most tentative matches; ``None``
-            verifies every image that could win (exact).
-        ransac_max_iters: RANSAC iterations.
-        ransac_confidence: RANSAC confidence.
-        ransac_method: robust estimator, a key of :data:`RANSAC_METHODS`; ``"ransac"`` (the paper's
-            ``cv2.RANSAC``) by default.
+        **ransac: the vote's settings, :class:`RansacVoting`'s keys (kept as ``ransac``).
     """
 
-    def __init__(
-        self,
-        ransac_reproj_threshold: float = 3.0,
-        min_inliers: int = 4,
-        top_k: int | None = None,
-        ransac_max_iters: int = 2000,
-        ransac_confidence: float = 0.995,
-        ransac_method: str = "ransac",
-    ) -> None:
-        if ransac_method not in RANSAC_METHODS:
-            raise ValueError(f"ransac_method must be one of {sorted(RANSAC_METHODS)}, got {ransac_method!r}")
-        if top_k is not None and int(top_k) < 1:
-            raise ValueError(f"top_k must be a positive integer or null, got {top_k}")
-        if ransac_reproj_threshold <= 0:
-            raise ValueError(f"ransac_reproj_threshold must be > 0, got {ransac_reproj_threshold}")
-        self.ransac_reproj_threshold = float(ransac_reproj_threshold)
-        self.min_inliers = int(min_inliers)
-        self.top_k = None if top_k is None else int(top_k)
-        self.ransac_max_iters = int(ransac_max_iters)
-        self.ransac_confidence = float(ransac_confidence)
-        self.ransac_method = ransac_method
+    def __init__(self, **ransac: Any) -> None:
+        self.ransac = RansacVoting(**ransac)
         self.gallery: GalleryDescriptors | None = None
         self.gallery_size: tuple[int, int] | None = None
 
@@ -491,24 +515,14 @@ class RansacVotingMatcher(ABC):
         inliers = torch.zeros(len(feats), dtype=torch.int64)
         gallery_kpts = [f.keypoints for f in gallery.features]
         for i, qf in enumerate(feats):
-            g, H, n_in = vote_by_ransac(
-                qf.keypoints,
-                gallery_kpts,
-                self.tentative(qf),
-                reproj_threshold=self.ransac_reproj_threshold,
-                min_inliers=self.min_inliers,
-                top_k=self._vote_top_k(),
-                max_iters=self.ransac_max_iters,
-                confidence=self.ransac_confidence,
-                method=RANSAC_METHODS[self.ransac_method],
-            )
+            g, H, n_in = self.ransac.vote(qf.keypoints, gallery_kpts, self.tentative(qf), self._vote_top_k())
             if g >= 0:
                 index[i], homs[i], inliers[i] = g, torch.from_numpy(H), n_in
         return MatchResult(gallery_index=index, query_H_anchor=homs, inliers=inliers)
 
     def _vote_top_k(self) -> int | None:
         """``top_k`` handed to the RANSAC vote (a subclass that shortlists earlier returns None)."""
-        return self.top_k
+        return self.ransac.top_k
 
 
 def measure_query_ms(matcher: KeypointMatcher, queries: torch.Tensor, warmup: int = 1) -> float:

