@@ -1,4 +1,4 @@
-"""Optional int8 query path (``quantize=int8`` in eval / predict / bench; docs/speed.md, issue #6).
+"""Optional int8 query path (``quantize=int8`` in eval / predict / bench): the query networks in int8 (docs/speed.md).
 
 Static post-training quantisation of the networks of one query, ``c(s(q))``, with torch's FX graph
 mode (``torch.ao.quantization.quantize_fx``; torch 2.13 no longer ships PT2E's

@@ -1,4 +1,4 @@
-"""Reliability (issue 7): numerical guards, metrics without NaN, atomic and resumable checkpoints, determinism,
+"""Reliability of training: numerical guards, metrics without NaN, atomic and resumable checkpoints, determinism,
 checkpoint loading safety. The bad-input table is tests/test_bad_inputs.py.
 
 Tolerances (also in the README, "Reliability"):
