@@ -30,7 +30,7 @@ from matl.inference.quantize import (
 from matl.models.recognizer import QueryGraph, TensorRecognizer
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
-from tests.inference.test_query_graph import S, gallery, networks
+from tests.models.test_recognizer import S, gallery, networks
 from tests.test_bench import QUICK
 
 pytestmark = pytest.mark.skipif(not quantize_available(), reason="no oneDNN quantised engine in this torch")

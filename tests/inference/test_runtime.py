@@ -13,7 +13,7 @@ from matl.inference.runtime import OnnxRuntimeQueryPath, apply_runtime, apply_ru
 from matl.models.recognizer import TensorRecognizer
 from matl.models.search import ExactSearch, nearest
 from matl.utils.errors import MatlError
-from tests.inference.test_query_graph import gallery, networks, random_homographies
+from tests.models.test_recognizer import gallery, networks, random_homographies
 from tests.speed_helpers import textured_planes
 
 pytest.importorskip("onnxruntime")
