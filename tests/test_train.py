@@ -6,10 +6,13 @@ import json
 import math
 from pathlib import Path
 
+import pytest
 import torch
 
 from matl.metrics import METRIC_NAMES
-from matl.training.fit import train
+from matl.training.fit import init_weights, train
+from matl.utils.errors import MatlError
+from matl.utils.instantiate import build
 
 
 def test_tiny_train_writes_metrics(tiny_train_cfg) -> None:
@@ -36,3 +39,21 @@ def test_tiny_tl_and_nce_run(tiny_train_cfg) -> None:
     assert tl["pose_err"] is None and tl["pose_acc_5px"] is None and 0 <= tl["rec_acc"] <= 1
     nce = train(tiny_train_cfg(["loss=nce", "N=6", "loss.num_negatives=8"], run="nce"))
     assert math.isfinite(nce["pose_err"])
+
+
+def test_tiny_occluded_run_from_another_runs_weights(tiny_train_cfg) -> None:
+    """``occlude=bin`` trains end to end; ``init_from`` starts a new run from a checkpoint's weights, and a
+    checkpoint of another N is a one-line error."""
+    first = tiny_train_cfg(run="first")
+    train(first)
+    best = Path(first.paths.output_dir) / "checkpoints" / "best.ckpt"
+    cfg = tiny_train_cfg(["occlude=bin", f"init_from={best}"], run="occluded")
+    _, model = build(cfg)
+    init_weights(cfg.init_from, cfg, model)
+    saved = torch.load(best, weights_only=True)["state_dict"]
+    assert all(torch.equal(v, saved[k]) for k, v in model.state_dict().items() if not k.startswith("recognizer."))
+    results = train(cfg)
+    assert math.isfinite(results["pose_err"]) and 0.0 <= results["rec_acc"] <= 1.0
+    other = tiny_train_cfg(["N=2", f"init_from={best}"], run="other")
+    with pytest.raises(MatlError, match=r"init_from=.* with N=4"):
+        init_weights(other.init_from, other, build(other)[1])

@@ -66,28 +66,50 @@ def null_reasons(results: dict[str, Any], model: Any) -> dict[str, str]:
     return reasons
 
 
-def check_resume_checkpoint(path: str | Path, cfg: DictConfig, model: Any) -> None:
-    """Before Lightning touches ``ckpt_path``: it must be a matl checkpoint of this config's size, N and model.
+def _check_fits(key: str, path: str | Path, ckpt: dict[str, Any], cfg: DictConfig, model: Any) -> None:
+    """``ckpt`` (read from ``path``, given as ``key=``) holds weights of this config's size, N and model."""
+    from matl.models.checkpoint import checkpoint_info
 
-    Read with ``weights_only=True``; every mismatch is a one-line :class:`MatlError` naming the file.
-    """
-    from matl.models.checkpoint import checkpoint_info, load_checkpoint
-
-    ckpt = load_checkpoint(path)
     size, num_anchors = checkpoint_info(ckpt, path)
     if size != int(cfg.data.image_size) or num_anchors != int(cfg.N):
-        raise MatlError(f"ckpt_path={path} was trained at {size} px with N={num_anchors}, but this config has "
-                        f"data.image_size={cfg.data.image_size} and N={cfg.N}: resume with the run's own settings")
-    if "loops" not in ckpt or "optimizer_states" not in ckpt:
-        raise MatlError(f"ckpt_path={path} holds weights only (no optimizer / loop state): it cannot resume training")
+        raise MatlError(f"{key}={path} was trained at {size} px with N={num_anchors}, but this config has "
+                        f"data.image_size={cfg.data.image_size} and N={cfg.N}: use the checkpoint's own settings")
     expected = {k: tuple(v.shape) for k, v in model.state_dict().items() if not k.startswith("recognizer.")}
     found = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if not k.startswith("recognizer.")}
     if expected != found:
         missing = sorted(set(expected) - set(found))[:3]
         extra = sorted(set(found) - set(expected))[:3]
         shapes = sorted(k for k in set(expected) & set(found) if expected[k] != found[k])[:3]
-        raise MatlError(f"ckpt_path={path} does not fit this model (model=... or its options differ): "
+        raise MatlError(f"{key}={path} does not fit this model (model=... or its options differ): "
                         f"missing {missing}, unexpected {extra}, other shapes {shapes}")
+
+
+def check_resume_checkpoint(path: str | Path, cfg: DictConfig, model: Any) -> None:
+    """Before Lightning touches ``ckpt_path``: it must be a matl checkpoint of this config's size, N and model.
+
+    Read with ``weights_only=True``; every mismatch is a one-line :class:`MatlError` naming the file.
+    """
+    from matl.models.checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(path)
+    _check_fits("ckpt_path", path, ckpt, cfg, model)
+    if "loops" not in ckpt or "optimizer_states" not in ckpt:
+        raise MatlError(f"ckpt_path={path} holds weights only (no optimizer / loop state): it cannot resume training; "
+                        f"init_from={path} starts a new run from its weights")
+
+
+def init_weights(value: Any, cfg: DictConfig, model: Any) -> str:
+    """``init_from``: load the weights of a checkpoint (a path, ``pretrained`` or ``pretrained_fast``) into ``model``
+    before training: a new run (optimiser, schedule and epochs from this config) from those weights. Returns the
+    checkpoint's path."""
+    from matl.models.checkpoint import load_checkpoint, resolve_checkpoint_keyword
+
+    path = str(resolve_checkpoint_keyword(str(value)))
+    ckpt = load_checkpoint(path)
+    _check_fits("init_from", path, ckpt, cfg, model)
+    state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("recognizer.")}
+    model.load_state_dict(state, strict=False)
+    return path
 
 
 def check_training_photos(cfg: DictConfig) -> None:
@@ -139,6 +161,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     resume = cfg.get("ckpt_path") or auto_ckpt
     if resume:
         check_resume_checkpoint(resume, cfg, model)
+    elif cfg.get("init_from"):  # a resumed run keeps its own weights; a new one may start from a checkpoint's
+        log.info("starting from the weights of %s", init_weights(cfg.init_from, cfg, model))
     callbacks = instantiate_list(cfg.get("callbacks"))
     loggers = instantiate_list(cfg.get("logger"))
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
