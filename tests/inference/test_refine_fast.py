@@ -212,7 +212,7 @@ class _OneMissing:
 def test_refined_matl_recognizer_composes_the_pose_once_and_an_unmatched_query_keeps_its_answer() -> None:
     from matl.geometry import compose_query_H_canon
     from matl.models.recognizer import TensorRecognizer
-    from tests.inference.test_query_graph import gallery, networks
+    from tests.models.test_recognizer import gallery, networks
 
     feature_net, stn = networks()
     g = gallery(feature_net)
