@@ -17,11 +17,12 @@ path, ``matl.predict`` with a gallery enrolled from image files (paper Sec. 2.1)
    imperfect alpha, ``clutter`` real backgrounds and a neighbouring product cut by the edge, ``view``
    pyrender views from 3D cameras (the plane-induced homography as truth), ``sizes`` other file sizes.
    The truth (object, plane, gallery file, ``query_H_canon`` in file pixels) goes to ``truth.jsonl``.
-4. *Methods* (``methods``): ``python -m matl.predict`` once per method on the same files, a separate
-   process each: ``matl``, ``matl_refine`` (``refine=true``), ``sift``, ``sift_ecc``, ``lightglue``,
-   ``xfeat`` and ``xfeat_lighterglue`` (``baseline=<name>``, read and framed by the same code); scored by
-   :func:`matl.score.score_files`; ``query_ms`` of every method timed here on the same queries
-   (``timing.*``: batch of 1, gallery in memory, warm-up, the same thread count).
+4. *Methods* (``methods``): predict's code (:func:`matl.inference.files.predict`, what ``python -m
+   matl.predict`` runs) once per method on the same files, in this process
+   (:mod:`matl.evaluation.unseen_methods`): ``matl``, ``matl_refine`` (``refine=true``), ``sift``,
+   ``sift_ecc``, ``lightglue``, ``xfeat`` and ``xfeat_lighterglue`` (``baseline=<name>``, read and framed
+   by the same code); scored by :func:`matl.evaluation.score.score_files`; ``query_ms`` of every method timed here on
+   the same queries (``timing.*``: batch of 1, gallery in memory, warm-up, the same thread count).
 
 Writes per condition ``unseen.json`` (the metrics of docs/design.md and ``plane_acc`` of the first
 MATL method at the top level, every method's under ``methods``, the products, what was excluded and

@@ -424,6 +424,10 @@ CASES = [
     cli("predict gallery_fill=2", "matl.predict", ["gallery_fill=2"], "gallery_fill=2 is invalid"),
     cli("predict foreground.retry_insets=[0.7]", "matl.predict", ["foreground.retry_insets=[0.7]"],
         "foreground.retry_insets=[0.7] is invalid"),
+    cli("unseen condition=foggy", "matl.unseen", ["ckpt=pretrained", "condition=foggy"],
+        "condition=foggy is invalid: use one or a list of clean, photometric"),
+    cli("unseen open_set_statistic=foo (a method's predict option: before any file is written)", "matl.unseen",
+        ["ckpt=pretrained", "methods=[matl]", "open_set_statistic=foo"], "matl: open_set_statistic='foo' is invalid"),
     cli("eval data=foo (unknown dataset)", "matl.eval", ["data=foo"], "unknown option data=foo"),
     # --- image files (queries and gallery images go through the same loader)
     image("image: text file named .png", lambda p: (p.write_text("hello"), p)[1], "not an image"),

@@ -16,7 +16,11 @@ homographies are ``query_H_canon`` in pixels (docs/design.md).
 * ``occluded``: the product on a picking bin's floor (:class:`DarkFloor`, or a real background), partly
   hidden by another product lying on it, a gripper, a suction cup or the bin's wall
   (:class:`matl.data.occluders.Occluders`); mostly RGB, a share RGBA with alpha the visible part.
-* ``view`` and ``sizes`` are written by :mod:`matl.evaluation.unseen` (rendered views; other file sizes).
+* ``view``: the products rendered from 3D camera poses; ``sizes``: the clean poses, with the gallery and
+  the query files at other sizes than the model's.
+
+This module holds the conditions' models; :mod:`matl.evaluation.condition_writers` writes every
+condition's files and their ground truth.
 """
 
 from __future__ import annotations

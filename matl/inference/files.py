@@ -211,8 +211,11 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     return recognizer
 
 
-def predict(cfg: DictConfig) -> dict[str, Any]:
+def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]:
     """Run predict for a composed ``conf/predict.yaml``; returns a summary.
+
+    ``baseline_name`` names the baseline whose node ``cfg.baseline`` is, for a config built in Python (e.g. by
+    :mod:`matl.evaluation.unseen_methods`); None: the command line's ``baseline=`` choice.
 
     Raises:
         MatlError: a bad option, no usable gallery, or no readable query image at all (then nothing
@@ -248,7 +251,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         from matl.inference.baseline_files import baseline_recognizer_from_config
         from matl.utils.runs import hydra_choice
 
-        baseline = hydra_choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]
+        baseline = baseline_name or hydra_choice("baseline") or str(cfg.baseline._target_).rsplit(".", 1)[-1]
         recognizer: Any = baseline_recognizer_from_config(cfg, baseline)
     else:
         recognizer = recognizer_from_config(cfg)

@@ -1,8 +1,9 @@
 """matl.score (predictions against a ground-truth sidecar) and matl.unseen (never-seen products via predict).
 
 The scorer is checked on made-up predictions (perfect ones score 1 and 0 px, wrong ones 0), the
-written ground truth against cv2 (the gallery file warped by the true H *is* the query file), and
-the whole unseen path once with a tiny checkpoint (32 px, one epoch).
+benchmark's options and held-out sources, and the whole unseen path once with a tiny checkpoint (32 px,
+one epoch). Each condition's files: test_condition_writers.py; each method's run: test_unseen_methods.py;
+the scores and the table: test_unseen_results.py.
 """
 
 from __future__ import annotations
@@ -13,80 +14,33 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 from omegaconf import open_dict
 
-from matl.data.canonical import CanonicalSet
+from matl.data.catalog import SyntheticCatalog
+from matl.data.catalog.drawing import HELDOUT_BACKGROUND_FILES, HELDOUT_PHOTO_FILES, PHOTO_FILES
+from matl.evaluation.conditions import CONDITIONS, sample_poses
 from matl.evaluation.score import read_truth, score, score_files
 from matl.evaluation.score import run as score_run
-from matl.evaluation.unseen import (
-    benchmark_table,
-    bin_labels,
-    breakdown_groups,
-    breakdown_result,
-    headline_queries,
-    hidden_bin,
-    score_condition,
-    seen_products,
-    unseen,
-    write_gallery,
-    write_queries,
-)
+from matl.evaluation.unseen import _check, seen_products, unseen
 from matl.geometry import HomographySampler
-from matl.training.fit import train
+from matl.training.fit import check_training_photos, train
 from matl.utils.errors import MatlError
 from tests.conftest import TINY, compose_config
+from tests.evaluation.test_condition_writers import tiny_set, write_case
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def tiny_set(size: int = 40, objects: int = 3) -> CanonicalSet:
-    """``objects`` two-plane objects: smooth coloured rectangles of different shapes on black, in memory."""
-    rng = np.random.default_rng(0)
-    images, masks, plane_object, names = [], [], [], []
-    y, x = np.mgrid[0:size, 0:size]
-    for o in range(objects):
-        for p, plane in enumerate(("front", "back")):
-            h, w = int(size * (0.3 + 0.1 * p)), int(size * (0.6 - 0.05 * o))
-            top, left = (size - h) // 2, (size - w) // 2
-            mask = (y >= top) & (y < top + h) & (x >= left) & (x < left + w)
-            colour = rng.uniform(0.2, 1.0, 3)
-            shade = 0.6 + 0.4 * np.sin(x / (3.0 + o) + p)[..., None]
-            images.append((mask[..., None] * colour * shade * 255).round().astype(np.uint8))
-            masks.append(mask)
-            plane_object.append(o)
-            names.append(plane)
-    return CanonicalSet(np.stack(images), np.stack(masks), np.array(plane_object, dtype=np.int64), names,
-                        [f"obj_{o}" for o in range(objects)], ["planar"] * objects)
-
-
-def write_case(root: Path, crop: bool = False, n: int = 12) -> tuple[Path, list[dict]]:
-    cs = tiny_set()
-    gallery, offsets = write_gallery(cs, root / "gallery", crop)
-    truth = write_queries(cs, HomographySampler(), n, 7, root / "queries", gallery, offsets, root)
-    (root / "truth.jsonl").write_text("".join(json.dumps(t) + "\n" for t in truth))
-    return root / "truth.jsonl", truth
+def _cfg(tmp_path: Path, *overrides: str):
+    return compose_config("unseen", ["ckpt=unused.ckpt", *overrides], tmp_path / "run")
 
 
 def write_predictions(path: Path, records: list[dict]) -> Path:
     path.write_text("".join(json.dumps(r) + "\n" for r in records))
     return path
 
-
-@pytest.mark.parametrize("crop", [False, True])
-def test_truth_is_what_the_files_show(tmp_path: Path, crop: bool) -> None:
-    """cv2.warpPerspective(gallery file, H) reproduces the query file: H is in the files' pixels."""
-    truth_path, truth = write_case(tmp_path, crop)
-    for record in truth:
-        query = cv2.imread(str(tmp_path / record["image"])).astype(np.float64)
-        gallery = cv2.imread(str(tmp_path / record["gallery_image"]))
-        warped = cv2.warpPerspective(gallery, np.array(record["H"]), (query.shape[1], query.shape[0]))
-        assert np.abs(warped.astype(np.float64) - query).mean() < 1.0
-    if crop:  # tight crops: smaller than the frame
-        assert any(cv2.imread(str(tmp_path / r["gallery_image"])).shape[0] < 40 for r in truth)
-    assert [t.object for t in read_truth(truth_path)] == [r["object"] for r in truth]
 
 
 @pytest.mark.parametrize("crop,gallery_fill,size", [(False, 1.0, 40), (False, 1.0, 20), (True, 0.6, 40)])
@@ -141,59 +95,6 @@ def test_score_user_errors(tmp_path: Path) -> None:
     cfg = compose_config("score", [f"predictions={truth_path}", f"truth={truth_path}"], tmp_path / "s")
     with pytest.raises(MatlError, match="model size"):
         score_run(cfg)
-
-
-def test_hidden_fraction_bins() -> None:
-    edges = [0.2, 0.35, 0.5]
-    assert bin_labels(edges) == ["<=0.20", "0.20-0.35", "0.35-0.50", ">0.50"]
-    assert [hidden_bin(h, edges) for h in (0.1, 0.2, 0.2001, 0.35, 0.49, 0.5, 0.51)] == [
-        "<=0.20", "<=0.20", "0.20-0.35", "0.20-0.35", "0.35-0.50", "0.35-0.50", ">0.50"]
-
-
-def test_a_mixed_condition_is_scored_on_its_rgb_queries_and_broken_down(tmp_path: Path) -> None:
-    """Occluded-like truth (hidden fraction, occluder, floor, rgba per query): the headline is the RGB queries,
-    each bin and kind is scored on its own queries, the RGBA ones under input only."""
-    _, truth = write_case(tmp_path, n=12)
-    hidden = [0.12, 0.18, 0.25, 0.3, 0.34, 0.4, 0.45, 0.49, 0.15, 0.22, 0.38, 0.55]
-    for i, t in enumerate(truth):
-        t.update(hidden_fraction=hidden[i], occluder=("edge", "product", "gripper")[i % 3], floor="dark",
-                 rgba=i >= 9)
-    truth_path = tmp_path / "truth.jsonl"
-    truth_path.write_text("".join(json.dumps(t) + "\n" for t in truth))
-    right = {0, 2, 3, 5, 9}  # every other query answered with another product
-    objects = sorted({t["object"] for t in truth})
-    predictions = write_predictions(tmp_path / "p.jsonl", [
-        {"image": t["image"], "object": t["object"] if i in right else objects[(objects.index(t["object"]) + 1) % 3],
-         "plane": t["plane"], "H": t["H"], "gallery_image": t["gallery_image"]} for i, t in enumerate(truth)])
-    headline = headline_queries(truth)
-    assert headline == list(range(9)) and headline_queries([{"rgba": True}]) == [0]
-    groups = breakdown_groups(truth, headline, [0.2, 0.35, 0.5])
-    assert groups["hidden_fraction"] == {"<=0.20": [0, 1, 8], "0.20-0.35": [2, 3, 4], "0.35-0.50": [5, 6, 7]}
-    assert groups["occluder"] == {"product": [1, 4, 7], "gripper": [2, 5, 8], "edge": [0, 3, 6]}
-    assert groups["input"] == {"rgb": list(range(9)), "rgba": [9, 10, 11]}
-    summary, rows, scored = score_condition(predictions, truth_path, headline, groups, 40)
-    assert summary["num_queries"] == 9 and summary["rec_acc"] == pytest.approx(4 / 9) and len(rows) == 12
-    assert summary["corner_err_px_median"] == pytest.approx(0.0, abs=1e-6)
-    assert scored["hidden_fraction"]["<=0.20"] == {"num_queries": 3, "rec_acc": pytest.approx(1 / 3),
-                                                   "corner_err_px_median": pytest.approx(0.0, abs=1e-6),
-                                                   "pose_acc_5px": pytest.approx(1 / 3)}
-    assert scored["hidden_fraction"]["0.35-0.50"]["rec_acc"] == pytest.approx(1 / 3)
-    assert scored["occluder"]["edge"]["rec_acc"] == pytest.approx(2 / 3)
-    assert scored["input"]["rgba"]["rec_acc"] == pytest.approx(1 / 3)
-    assert breakdown_groups([{"image": "a"}], [0], [0.2]) == {}  # other conditions have none
-
-    result = breakdown_result(groups, {"matl": scored}, [0.2, 0.35, 0.5], "rgb")
-    assert result["occluder"]["gripper"] == {"num_queries": 3, "methods": {"matl": {
-        "rec_acc": pytest.approx(2 / 3), "corner_err_px_median": pytest.approx(0.0, abs=1e-6),
-        "pose_acc_5px": pytest.approx(2 / 3)}}}
-    row = {"num_queries": 9, "num_objects": 3, "num_planes": 6, "image_size": 40, "checkpoint": "c", "data": {},
-           "query_seed": 7, "timing": None, "headline": "rgb", "breakdown": result,
-           "methods": {"matl": {"rec_acc": 4 / 9, "corner_err_px_median": 0.0, "pose_acc_5px": 4 / 9,
-                                "query_ms": None}}}
-    data, text = benchmark_table({"occluded": row}, ["matl"], "")
-    assert "| occluded | 9 | 0.444 / 0.0 / 0.444 / - |" in text and "occluded count its RGB queries only" in text
-    assert "| hidden_fraction <=0.20 | 3 | 0.333 / 0.0 / 0.333 |" in text and "| input rgba | 3 |" in text
-    assert data["breakdown"]["occluded"]["hidden_fraction"]["0.20-0.35"]["num_queries"] == 3
 
 
 # ------------------------------------------------------------------------------- whole path
@@ -313,6 +214,90 @@ def test_seen_products_of_the_catalogs() -> None:
     shelf = ShelfCatalog(shelves=1, first_seed=100)
     seen, _, _ = seen_products(shelves, shelf, [p.name for p in shelf.products()])
     assert len(seen) == 34
+
+
+# ----------------------------------------------------------------------------- held-out sources
+def test_heldout_catalog_prints_only_heldout_photos() -> None:
+    default, heldout = SyntheticCatalog("apc", 1), SyntheticCatalog("apc", 1, photos="skimage")
+    assert default.cache_key() == SyntheticCatalog("apc", 1, photos="matplotlib").cache_key()
+    assert "photos" not in default.cache_key() and heldout.cache_key()["photos"].startswith("skimage-")
+    assert heldout.cache_key() != default.cache_key()
+    arts = {p.art for p in heldout.products()}
+    assert arts <= {f"photo_{k}" for k in HELDOUT_PHOTO_FILES} and len(arts) == len(HELDOUT_PHOTO_FILES)
+    assert not {p.art for p in default.products()} & arts  # the training catalogs never print them
+    assert [p.name for p in heldout.products()] == [p.name for p in default.products()]
+    assert not set(HELDOUT_PHOTO_FILES) & set(HELDOUT_BACKGROUND_FILES) and not set(HELDOUT_PHOTO_FILES) & set(
+        PHOTO_FILES)
+    with pytest.raises(ValueError, match="photos"):
+        SyntheticCatalog("apc", 1, photos="flickr")
+
+
+def test_training_refuses_the_heldout_photos(tmp_path: Path) -> None:
+    check_training_photos(compose_config("train", [], tmp_path))
+    with pytest.raises(MatlError, match="held-out"):
+        check_training_photos(compose_config("train", ["data=heldout"], tmp_path))
+
+
+# ------------------------------------------------------------------------------ options and table
+@pytest.mark.parametrize("override,match", [
+    ("condition=foggy", "condition=foggy is invalid: use one or a list of clean, photometric, mask, clutter, "
+                        "occluded, view, sizes or all"),
+    ("methods=[matl,orb]", r"methods=\['matl', 'orb'\] is invalid: use a list of matl, matl_refine, sift, sift_ecc, "
+                           "lightglue, xfeat, xfeat_lighterglue$"),
+    ("methods=[]", "methods=.* is invalid"),
+    ("sizes.query=8", "sizes.query=8 is invalid"),
+    ("photometric.gain=[2.0,1.0]", r"photometric.gain=\[2.0, 1.0\] is invalid: use \[low, high\]"),
+    ("occluded.hidden=[0.5,0.1]", r"occluded.hidden=\[0.5, 0.1\] is invalid: use \[low, high\]"),
+    ("occluded.hidden=[0.1,1.0]", r"occluded: occluder hidden=\[0.1, 1.0\] is invalid: use \[low, high\] with 0 <= "),
+    ("+occluded.kinds.hand=1", "occluded: occluder kind 'hand' is unknown: use product, gripper, suction or edge"),
+    ("occluded.kinds.edge=-1", "occluded: occluder kind weight edge=-1 is invalid: use a number >= 0"),
+    ("occluded.floors.dark=0", None),
+    ("+occluded.floors.carpet=1", r"occluded.floors=\{.*\} is invalid: use weights >= 0 of dark and texture"),
+    ("occluded.rgba_share=1.5", r"occluded.rgba_share=1.5 is invalid: use a fraction in \[0, 1\]"),
+    ("occluded.bins=[0.35,0.2]", r"occluded.bins=\[0.35, 0.2\] is invalid: use increasing upper edges in \(0, 1\)"),
+    ("occluded.dark_floor.level=[0.1,0.0]", r"occluded.dark_floor.level=\[0.1, 0.0\] is invalid"),
+])
+def test_bad_options_are_one_line_errors(tmp_path: Path, override: str, match: str | None) -> None:
+    if match is None:  # a valid setting
+        _check(_cfg(tmp_path, override))
+        return
+    with pytest.raises(MatlError, match=match) as error:
+        _check(_cfg(tmp_path, override))
+    assert "\n" not in str(error.value)
+
+
+def test_condition_and_method_lists(tmp_path: Path) -> None:
+    assert _check(_cfg(tmp_path, "condition=all"))[0] == list(CONDITIONS)
+    assert _check(_cfg(tmp_path, "condition=[view,clean]", "methods=[sift]")) == (["view", "clean"], ["sift"])
+    assert _check(_cfg(tmp_path, "methods=[matl,lightglue,xfeat,xfeat_lighterglue]"))[1] == [
+        "matl", "lightglue", "xfeat", "xfeat_lighterglue"]
+
+
+def test_cfg_helper_keeps_the_defaults(tmp_path: Path) -> None:
+    cfg = _cfg(tmp_path)
+    assert cfg.condition == "clean" and list(cfg.methods) == ["matl", "matl_refine", "sift", "sift_ecc"]
+    assert cfg.data.source.photos == "skimage" and cfg.baselines.sift_ecc._target_.endswith("SiftEccMatcher")
+    with open_dict(cfg):
+        cfg.timing.queries = 0
+    assert _check(cfg)[1] == ["matl", "matl_refine", "sift", "sift_ecc"]
+    plane, query_H_canon = sample_poses(tiny_set(), HomographySampler(), 3, 0)
+    assert plane.shape == (3,) and query_H_canon.shape == (3, 3, 3)
+
+
+@pytest.mark.parametrize("override,match", [
+    ("open_set_statistic=foo", r"^matl: open_set_statistic='foo' is invalid: use verify, verify_or_ratio, ratio or "
+                               "distance$"),
+    ("baselines.sift.ratio=2", r"^sift: baseline=sift cannot be built: ratio must be in \(0, 1\], got 2"),
+    ("verify_max=-1", r"^matl: verify_max=-1 is invalid"),
+])
+def test_a_methods_mistake_stops_the_benchmark_before_any_file(tmp_path: Path, override: str, match: str) -> None:
+    """Every method's predict options, model and matcher are checked before a condition is written."""
+    out = tmp_path / "bench"
+    cfg = compose_config("unseen", ["ckpt=pretrained", "methods=[matl,sift]", f"out={out}", override],
+                         tmp_path / "run")
+    with pytest.raises(MatlError, match=match):
+        unseen(cfg)
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("module,args", [("matl.unseen", []), ("matl.score", ["predictions=/nonexistent.jsonl",

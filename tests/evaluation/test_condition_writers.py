@@ -1,8 +1,8 @@
-"""matl.unseen's benchmark conditions, held-out image sources, keypoint baselines on files and its table.
+"""The condition writers of matl.unseen's benchmark: each condition's files and their ground truth.
 
-Each condition's writer runs on a tiny in-memory set (or, for rendered views and other sizes, on two
-products of the held-out catalog at 32 px), and its files are checked for the property that makes the
-condition what it is; the ground truth is checked against the pixels.
+Each writer runs on a tiny in-memory set (or, for rendered views and other sizes, on two products of the
+held-out catalog at 32 px), and its files are checked for the property that makes the condition what it
+is; the ground truth is checked against the pixels (the gallery file warped by the true H *is* the query file).
 """
 
 from __future__ import annotations
@@ -13,29 +13,44 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import torch
-from omegaconf import open_dict
 from PIL import Image
 
-from matl.data.canonical import load_canonical
+from matl.data.canonical import CanonicalSet, load_canonical
 from matl.data.catalog import SyntheticCatalog
-from matl.data.catalog.drawing import HELDOUT_BACKGROUND_FILES, HELDOUT_PHOTO_FILES, PHOTO_FILES
-from matl.evaluation.conditions import CONDITIONS, sample_poses, warp_planes
-from matl.evaluation.unseen import (
-    WRITERS,
-    Queries,
-    _check,
-    benchmark_table,
-    foreground_choice,
-    method_overrides,
-    predict_args,
-    write_gallery,
-)
+from matl.evaluation.condition_writers import WRITERS, Queries, write_gallery, write_queries
+from matl.evaluation.conditions import sample_poses, warp_planes
+from matl.evaluation.score import read_truth
 from matl.geometry import HomographySampler
-from matl.training.fit import check_training_photos
 from matl.utils.errors import MatlError
 from tests.conftest import compose_config
-from tests.evaluation.test_unseen import tiny_set
+
+
+def tiny_set(size: int = 40, objects: int = 3) -> CanonicalSet:
+    """``objects`` two-plane objects: smooth coloured rectangles of different shapes on black, in memory."""
+    rng = np.random.default_rng(0)
+    images, masks, plane_object, names = [], [], [], []
+    y, x = np.mgrid[0:size, 0:size]
+    for o in range(objects):
+        for p, plane in enumerate(("front", "back")):
+            h, w = int(size * (0.3 + 0.1 * p)), int(size * (0.6 - 0.05 * o))
+            top, left = (size - h) // 2, (size - w) // 2
+            mask = (y >= top) & (y < top + h) & (x >= left) & (x < left + w)
+            colour = rng.uniform(0.2, 1.0, 3)
+            shade = 0.6 + 0.4 * np.sin(x / (3.0 + o) + p)[..., None]
+            images.append((mask[..., None] * colour * shade * 255).round().astype(np.uint8))
+            masks.append(mask)
+            plane_object.append(o)
+            names.append(plane)
+    return CanonicalSet(np.stack(images), np.stack(masks), np.array(plane_object, dtype=np.int64), names,
+                        [f"obj_{o}" for o in range(objects)], ["planar"] * objects)
+
+
+def write_case(root: Path, crop: bool = False, n: int = 12) -> tuple[Path, list[dict]]:
+    cs = tiny_set()
+    gallery, offsets = write_gallery(cs, root / "gallery", crop)
+    truth = write_queries(cs, HomographySampler(), n, 7, root / "queries", gallery, offsets, root)
+    (root / "truth.jsonl").write_text("".join(json.dumps(t) + "\n" for t in truth))
+    return root / "truth.jsonl", truth
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -60,10 +75,8 @@ def _rgba(path: Path) -> np.ndarray:
         return np.asarray(im)
 
 
-def textured_set(size: int = 80, objects: int = 2):
+def textured_set(size: int = 80, objects: int = 2) -> CanonicalSet:
     """``objects`` one-plane objects: rectangles of blurred random texture (keypoints to match), in memory."""
-    from matl.data.canonical import CanonicalSet
-
     rng = np.random.default_rng(1)
     images, masks = [], []
     for o in range(objects):
@@ -99,6 +112,20 @@ def heldout_two(cache_dir: Path):
     """Two planar products of the held-out catalog (4 planes) at 32 px."""
     source = FirstProducts(2, catalog="apc", seed=1, photos="skimage")
     return source, load_canonical(source, 32, cache_dir)
+
+
+@pytest.mark.parametrize("crop", [False, True])
+def test_truth_is_what_the_files_show(tmp_path: Path, crop: bool) -> None:
+    """cv2.warpPerspective(gallery file, H) reproduces the query file: H is in the files' pixels."""
+    truth_path, truth = write_case(tmp_path, crop)
+    for record in truth:
+        query = cv2.imread(str(tmp_path / record["image"])).astype(np.float64)
+        gallery = cv2.imread(str(tmp_path / record["gallery_image"]))
+        warped = cv2.warpPerspective(gallery, np.array(record["H"]), (query.shape[1], query.shape[0]))
+        assert np.abs(warped.astype(np.float64) - query).mean() < 1.0
+    if crop:  # tight crops: smaller than the frame
+        assert any(cv2.imread(str(tmp_path / r["gallery_image"])).shape[0] < 40 for r in truth)
+    assert [t.object for t in read_truth(truth_path)] == [r["object"] for r in truth]
 
 
 # ------------------------------------------------------------------------------------ conditions
@@ -220,136 +247,3 @@ def test_sizes_files_have_the_requested_sizes_and_truth(tmp_path: Path, heldout_
         assert query.shape == (40, 40, 3) and gallery.shape == (48, 48, 3)
         warped = cv2.warpPerspective(gallery, np.array(record["H"]), (40, 40)).astype(np.float64)
         assert np.abs(warped - query).mean() < 8.0
-
-
-# ----------------------------------------------------------------------------- held-out sources
-def test_heldout_catalog_prints_only_heldout_photos() -> None:
-    default, heldout = SyntheticCatalog("apc", 1), SyntheticCatalog("apc", 1, photos="skimage")
-    assert default.cache_key() == SyntheticCatalog("apc", 1, photos="matplotlib").cache_key()
-    assert "photos" not in default.cache_key() and heldout.cache_key()["photos"].startswith("skimage-")
-    assert heldout.cache_key() != default.cache_key()
-    arts = {p.art for p in heldout.products()}
-    assert arts <= {f"photo_{k}" for k in HELDOUT_PHOTO_FILES} and len(arts) == len(HELDOUT_PHOTO_FILES)
-    assert not {p.art for p in default.products()} & arts  # the training catalogs never print them
-    assert [p.name for p in heldout.products()] == [p.name for p in default.products()]
-    assert not set(HELDOUT_PHOTO_FILES) & set(HELDOUT_BACKGROUND_FILES) and not set(HELDOUT_PHOTO_FILES) & set(
-        PHOTO_FILES)
-    with pytest.raises(ValueError, match="photos"):
-        SyntheticCatalog("apc", 1, photos="flickr")
-
-
-def test_training_refuses_the_heldout_photos(tmp_path: Path) -> None:
-    check_training_photos(compose_config("train", [], tmp_path))
-    with pytest.raises(MatlError, match="held-out"):
-        check_training_photos(compose_config("train", ["data=heldout"], tmp_path))
-
-
-# ------------------------------------------------------------------------------ options and table
-@pytest.mark.parametrize("override,match", [
-    ("condition=foggy", "condition=foggy is invalid: use one or a list of clean, photometric, mask, clutter, "
-                        "occluded, view, sizes or all"),
-    ("methods=[matl,orb]", r"methods=\['matl', 'orb'\] is invalid: use a list of matl, matl_refine, sift, sift_ecc, "
-                           "lightglue, xfeat, xfeat_lighterglue$"),
-    ("methods=[]", "methods=.* is invalid"),
-    ("sizes.query=8", "sizes.query=8 is invalid"),
-    ("photometric.gain=[2.0,1.0]", r"photometric.gain=\[2.0, 1.0\] is invalid: use \[low, high\]"),
-    ("occluded.hidden=[0.5,0.1]", r"occluded.hidden=\[0.5, 0.1\] is invalid: use \[low, high\]"),
-    ("occluded.hidden=[0.1,1.0]", r"occluded: occluder hidden=\[0.1, 1.0\] is invalid: use \[low, high\] with 0 <= "),
-    ("+occluded.kinds.hand=1", "occluded: occluder kind 'hand' is unknown: use product, gripper, suction or edge"),
-    ("occluded.kinds.edge=-1", "occluded: occluder kind weight edge=-1 is invalid: use a number >= 0"),
-    ("occluded.floors.dark=0", None),
-    ("+occluded.floors.carpet=1", r"occluded.floors=\{.*\} is invalid: use weights >= 0 of dark and texture"),
-    ("occluded.rgba_share=1.5", r"occluded.rgba_share=1.5 is invalid: use a fraction in \[0, 1\]"),
-    ("occluded.bins=[0.35,0.2]", r"occluded.bins=\[0.35, 0.2\] is invalid: use increasing upper edges in \(0, 1\)"),
-    ("occluded.dark_floor.level=[0.1,0.0]", r"occluded.dark_floor.level=\[0.1, 0.0\] is invalid"),
-])
-def test_bad_options_are_one_line_errors(tmp_path: Path, override: str, match: str | None) -> None:
-    if match is None:  # a valid setting
-        _check(_cfg(tmp_path, override))
-        return
-    with pytest.raises(MatlError, match=match) as error:
-        _check(_cfg(tmp_path, override))
-    assert "\n" not in str(error.value)
-
-
-def test_condition_lists_and_method_commands(tmp_path: Path) -> None:
-    assert _check(_cfg(tmp_path, "condition=all"))[0] == list(CONDITIONS)
-    assert _check(_cfg(tmp_path, "condition=[view,clean]", "methods=[sift]")) == (["view", "clean"], ["sift"])
-    common = ["ckpt=c", "threshold=null"]
-    refined = predict_args("matl_refine", common)
-    assert refined == [*common, "refine=true", "foreground=grabcut", "runtime=onnxruntime"]
-    plain = predict_args("matl", common, "none", "torch")
-    assert plain == [*common, "refine=false", "foreground=none", "runtime=torch"]
-    assert predict_args("sift_ecc", common) == ["ckpt=c", "baseline=sift_ecc", "threshold=null"]
-    assert predict_args("xfeat_lighterglue", common) == ["ckpt=c", "baseline=xfeat_lighterglue", "threshold=null"]
-    assert _check(_cfg(tmp_path, "methods=[matl,lightglue,xfeat,xfeat_lighterglue]"))[1] == [
-        "matl", "lightglue", "xfeat", "xfeat_lighterglue"]
-    assert method_overrides("sift") == []  # called as a function: no command-line overrides
-    assert foreground_choice(_cfg(tmp_path)) == "grabcut"  # the default, passed on to predict
-    assert foreground_choice(_cfg(tmp_path, "foreground=none")) == "none"
-
-
-def test_the_refiner_choice_and_its_keys_reach_matl_refine_only(monkeypatch) -> None:
-    import matl.evaluation.unseen as unseen
-
-    given = ["ckpt=c", "refiner=fast", "refiner.levels=2", "baselines.sift.ratio=0.7", "queries=10",
-             "foreground.passes=1"]
-    monkeypatch.setattr(unseen, "_task_overrides", lambda: given)
-    assert method_overrides("matl_refine") == ["refiner=fast", "refiner.levels=2", "foreground.passes=1"]
-    assert method_overrides("matl") == ["foreground.passes=1"]
-    assert method_overrides("sift") == ["baseline.ratio=0.7"]
-
-
-def test_benchmark_table_has_a_row_per_condition_and_a_column_per_method() -> None:
-    methods = ["matl", "sift"]
-    results = {c: {"num_queries": 10, "num_objects": 3, "num_planes": 6, "image_size": 100, "checkpoint": "c.ckpt",
-                   "data": {}, "query_seed": 1, "timing": None,
-                   "methods": {m: {"rec_acc": 0.5 + 0.1 * j, "corner_err_px_median": 2.0, "pose_acc_5px": 0.25,
-                                   "query_ms": 3.0 if m == "matl" else None} for j, m in enumerate(methods)}}
-               for c in ("clean", "mask")}
-    data, text = benchmark_table(results, methods, "python -m matl.unseen ckpt=c.ckpt condition=all")
-    assert data["conditions"] == ["clean", "mask"] and data["methods"] == methods
-    assert data["table"]["mask"]["sift"]["rec_acc"] == pytest.approx(0.6)
-    lines = [line for line in text.splitlines() if line.startswith("|")]
-    assert lines[0] == "| condition | queries | matl | sift |" and len(lines) == 4
-    assert lines[2] == "| clean | 10 | 0.500 / 2.0 / 0.250 / 3.0 | 0.600 / 2.0 / 0.250 / - |"
-    assert "python -m matl.unseen ckpt=c.ckpt condition=all" in text
-    json.dumps(data)
-
-
-def test_keypoint_baseline_on_files_frames_like_predict(tmp_path: Path) -> None:
-    """predict's baseline path: the enrolled files framed by enrol_gallery, the pose back in file pixels."""
-    from matl.baselines.sift import SiftRansacMatcher
-    from matl.inference.baseline_files import KeypointFileRecognizer
-    from matl.inference.files import predict_files
-
-    cs = textured_set()
-    q = Queries(cs, *sample_poses(cs, HomographySampler(rotation_deg=(-20.0, 20.0)), 4, 3), 3, None,
-                list(range(cs.num_objects)), _cfg(tmp_path))
-    truth = _write(q, "clean", tmp_path)
-    rec = KeypointFileRecognizer(SiftRansacMatcher(), "sift", 64, 2).enrol(tmp_path / "gallery")
-    assert len(rec.gallery) == cs.num_planes * 2 and rec.threshold is None
-    records: list[dict] = []
-    files = [tmp_path / t["image"] for t in truth]
-    done, bad = predict_files(rec, files, records.append, show_progress=False)
-    assert done == 4 and bad == [] and [r["image"] for r in records] == [str(f) for f in files]
-    right = 0
-    for record, t in zip(records, truth, strict=True):
-        assert record["distance"] is None and (record["object"] is None) == (record["H"] is None)
-        if record["object"] == t["object"] and record["plane"] == t["plane"]:
-            # the corners of the textured rectangle, in gallery file pixels (80 px)
-            corners = np.array([[16, 20, 1], [63, 20, 1], [63, 55, 1], [16, 55, 1.0]]).T
-            a, b = np.array(record["H"]) @ corners, np.array(t["H"]) @ corners
-            assert np.abs(a[:2] / a[2] - b[:2] / b[2]).max() < 2.5
-            right += 1
-    assert right >= 3
-
-
-def test_cfg_helper_keeps_the_defaults(tmp_path: Path) -> None:
-    cfg = _cfg(tmp_path)
-    assert cfg.condition == "clean" and list(cfg.methods) == ["matl", "matl_refine", "sift", "sift_ecc"]
-    assert cfg.data.source.photos == "skimage" and cfg.baselines.sift_ecc._target_.endswith("SiftEccMatcher")
-    with open_dict(cfg):
-        cfg.timing.queries = 0
-    assert _check(cfg)[1] == ["matl", "matl_refine", "sift", "sift_ecc"]
-    assert torch.is_tensor(sample_poses(tiny_set(), HomographySampler(), 3, 0)[1])
