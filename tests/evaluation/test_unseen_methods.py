@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,8 @@ from matl.evaluation.condition_writers import Queries
 from matl.evaluation.conditions import sample_poses
 from matl.evaluation.unseen_methods import MethodRun, foreground_choice, method_overrides, score_command, shared_options
 from matl.geometry import HomographySampler
+from matl.inference.api import PRETRAINED
 from matl.inference.files import predict
-from matl.models.checkpoint import PRETRAINED
 from matl.utils.errors import MatlError, group_options
 from tests.conftest import compose_config
 from tests.evaluation.test_condition_writers import _write, textured_set
@@ -129,12 +130,13 @@ def test_a_run_in_this_process_writes_what_predict_writes_from_the_command(tmp_p
         assert all(np.isfinite(np.array(r["H"])).all() for r in lines if r["H"] is not None)
         recognizer = run.recognizer()
         assert recognizer.batch_size == 1
-    empty = tmp_path / "empty"
-    empty.mkdir()
+    empty = tmp_path / "empty"  # the same gallery, no query file
+    shutil.copytree(tmp_path / "gallery", empty / "gallery")
     (empty / "queries").mkdir()
     run = MethodRun.of("matl", cfg, shared_options(cfg, PRETRAINED, empty, None, 1.0, 1.0), empty / "p.jsonl")
-    with pytest.raises(MatlError, match=r"^matl: gallery=.*: no such folder$"):
+    with pytest.raises(MatlError, match=r"^matl: images=.*/empty/queries holds no files$"):
         run.run()
+    assert not (empty / "p.jsonl").exists()
 
 
 def test_keypoint_baseline_on_files_frames_like_predict(tmp_path: Path) -> None:
