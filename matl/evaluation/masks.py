@@ -79,18 +79,19 @@ def score_masks(step: Any, crops: Iterable[Crop], use_alpha: bool = True, warmup
             "ms_per_crop": round(1000.0 * float(np.median(times)), 3), "per_query": [round(v, 4) for v in ious]}
 
 
-def condition_crops(folder: str | Path, limit: int | None = None) -> list[Crop]:
-    """The query crops of a ``matl.unseen`` condition folder and their true masks (``truth.jsonl``'s ``mask_file``).
+def condition_crops(folder: str | Path, limit: int | None = None, truth: str = "truth.jsonl") -> list[Crop]:
+    """The query crops of a ``matl.unseen`` condition folder and their true masks (``mask_file`` of the truth file
+    ``truth``: ``truth.jsonl``, or e.g. ``truth_rgb.jsonl``, the RGB files of ``occluded``).
 
     Raises:
-        MatlError: no ``truth.jsonl``, or one without ``mask_file`` entries.
+        MatlError: no such truth file, or one without ``mask_file`` entries.
     """
     from matl.data.image_files import read_rgba
 
     folder = Path(folder)
-    truth_file = folder / "truth.jsonl"
+    truth_file = folder / truth
     if not truth_file.is_file():
-        raise MatlError(f"{folder}: no truth.jsonl: give a condition folder written by python -m matl.unseen")
+        raise MatlError(f"{folder}: no {truth}: give a condition folder written by python -m matl.unseen")
     crops: list[Crop] = []
     for line in truth_file.read_text().splitlines():
         if not line.strip():
@@ -111,10 +112,10 @@ def condition_crops(folder: str | Path, limit: int | None = None) -> list[Crop]:
     return crops
 
 
-def score_condition(folder: str | Path, step: Any, use_alpha: bool = True, limit: int | None = None
-                    ) -> dict[str, Any]:
+def score_condition(folder: str | Path, step: Any, use_alpha: bool = True, limit: int | None = None,
+                    truth: str = "truth.jsonl") -> dict[str, Any]:
     """:func:`score_masks` of ``step`` on a ``matl.unseen`` condition folder's queries (:func:`condition_crops`)."""
-    return score_masks(step, condition_crops(folder, limit), use_alpha)
+    return score_masks(step, condition_crops(folder, limit, truth), use_alpha)
 
 
 def scene_crops(maker: Any, n: int, start: int = 0) -> list[Crop]:

@@ -62,7 +62,7 @@ from matl.data.gallery import Gallery
 from matl.data.image_files import fit_to_model, load_image_file, pose_in_files, read_rgba
 from matl.geometry import HomographySampler, compose_query_H_canon, warp_image
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask
+from matl.inference.foreground import ForegroundStep, foreground_option, mask_query, pose_mask
 from matl.inference.gallery import build_gallery, enrol_gallery
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
@@ -274,7 +274,9 @@ class Recognizer:
         batch_size: query images per forward pass.
         foreground: the foreground step of RGB queries without a mask (:mod:`matl.inference.foreground`):
             ``grabcut`` (default; a crop whose border is black is used as given), ``none`` (every RGB
-            query used as given) or a :class:`~matl.inference.foreground.GrabCutForeground`. An RGBA
+            query used as given), ``learned`` (the visibility network; its soft probability
+            ``foreground.probability(rgb)``) or a :class:`~matl.inference.foreground.GrabCutForeground` or
+            :class:`~matl.inference.foreground.LearnedForeground`. An RGBA
             query always uses its alpha.
     """
 
@@ -286,7 +288,7 @@ class Recognizer:
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
                  verify_refine: bool = True, gallery_fill: float = 1.0,
                  query_fill: float = 1.0, batch_size: int = 64,
-                 foreground: str | GrabCutForeground | None = "grabcut") -> None:
+                 foreground: str | ForegroundStep | None = "grabcut") -> None:
         if quantize not in ("none", "int8"):
             raise MatlError(f"quantize={quantize!r} is invalid: use none or int8")
         if runtime not in RUNTIMES:
@@ -704,7 +706,7 @@ class Recognizer:
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification = self._answer(recognizer, prepared)
-        if verification is not None and self.foreground is not None and self.foreground.retry_insets:
+        if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries,
                                                                        verification)
@@ -754,7 +756,8 @@ class Recognizer:
                             pred: Prediction, queries: torch.Tensor, verification: Verification
                             ) -> tuple[Prediction, torch.Tensor, Verification]:
         """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
-        GrabCut from wider insets (:meth:`GrabCutForeground.retries`) and answered again; it keeps the answer
+        GrabCut from wider insets (:meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
+        ``retry_thresholds``) and answered again; it keeps the answer
         whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
         keeps the crop's size)."""
         retried: list[int] = []

@@ -259,21 +259,22 @@ class LearnedForeground:
                             "(0, 1), e.g. [0.3, 0.7], or [] for no retries")
         if self.runtime not in LEARNED_RUNTIMES:
             raise MatlError(f"foreground learned: runtime={self.runtime!r}: use {' or '.join(LEARNED_RUNTIMES)}")
-        if (not 0.0 < float(self.threshold) < 1.0 or not 0.0 < float(self.centre) <= 1.0
-                or not 0.0 < float(self.min_part) <= 1.0 or not 0.0 <= float(self.hole_area) <= 1.0
-                or not 0.0 <= float(self.hole_probability) <= 1.0 or int(self.alpha_band_px) < 0
-                or int(self.passes) < 0 or not 0.0 <= float(self.black_level) < 1.0
-                or (self.black_fraction is not None and not 0.0 < float(self.black_fraction) <= 1.0)
-                or (self.threads is not None and int(self.threads) < 1)
-                or (self.size is not None and (int(self.size) < 16 or int(self.size) % 8))):
-            raise MatlError(f"foreground learned: threshold={self.threshold}, centre={self.centre}, min_part="
-                            f"{self.min_part}, hole_area={self.hole_area}, hole_probability={self.hole_probability}, "
-                            f"alpha_band_px={self.alpha_band_px}, passes={self.passes}, "
-                            f"black_level={self.black_level}, black_fraction={self.black_fraction}, "
-                            f"threads={self.threads}, size={self.size}: use "
-                            "threshold in (0, 1), centre and min_part in (0, 1], hole_area and hole_probability in "
-                            "[0, 1], alpha_band_px >= 0, passes >= 0, black_level in [0, 1), black_fraction in "
-                            "(0, 1] or null, threads >= 1 or null, size a multiple of 8 (>= 16) or null")
+        checks = (("threshold", 0.0 < float(self.threshold) < 1.0, "a probability in (0, 1), e.g. 0.5"),
+                  ("centre", 0.0 < float(self.centre) <= 1.0, "a fraction of the crop's side in (0, 1]"),
+                  ("min_part", 0.0 < float(self.min_part) <= 1.0, "a fraction in (0, 1] (1: the largest alone)"),
+                  ("hole_area", 0.0 <= float(self.hole_area) <= 1.0, "a fraction in [0, 1] (0: no hole filled)"),
+                  ("hole_probability", 0.0 <= float(self.hole_probability) <= 1.0, "a probability in [0, 1]"),
+                  ("alpha_band_px", int(self.alpha_band_px) >= 0, "px >= 0 (0: an RGBA alpha as given)"),
+                  ("passes", int(self.passes) >= 0, "an integer >= 0"),
+                  ("black_level", 0.0 <= float(self.black_level) < 1.0, "a level in [0, 1)"),
+                  ("black_fraction", self.black_fraction is None or 0.0 < float(self.black_fraction) <= 1.0,
+                   "a fraction in (0, 1], or null (every crop through the network)"),
+                  ("threads", self.threads is None or int(self.threads) >= 1, "an integer >= 1, or null"),
+                  ("size", self.size is None or (int(self.size) >= 16 and int(self.size) % 8 == 0),
+                   "a multiple of 8 (>= 16), or null (the network's own)"))
+        for name, ok, rule in checks:
+            if not ok:
+                raise MatlError(f"foreground learned: {name}={getattr(self, name)} is invalid: use {rule}")
         from matl.models.visibility import load_visibility_net
 
         given = self.__dict__.pop("_given", None)  # from_network's network
@@ -373,9 +374,9 @@ class LearnedForeground:
             return False
         if self.black_fraction is None:
             return True
-        band = np.ones((h, w), bool)
-        band[2:h - 2, 2:w - 2] = False
-        return float((rgb[band].max(-1) <= self.black_level).mean()) < self.black_fraction
+        band = (rgb[:2], rgb[-2:], rgb[2:-2, :2], rgb[2:-2, -2:])  # the 2 px border band, each pixel once
+        black = sum(int((b.max(-1) <= self.black_level).sum()) for b in band)
+        return black / (2 * 2 * (h + w) - 16) < float(self.black_fraction)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """The alpha ``(H, W)`` float32 in {0, 1} of a float RGB ``(H, W, 3)`` crop in [0, 1]; every pixel for a crop
@@ -410,8 +411,9 @@ class LearnedForeground:
         if len(touching) == 0:
             return None
         area = stats[touching, cv2.CC_STAT_AREA]
-        kept = touching[area >= float(self.min_part) * area.max()]
-        mask = np.isin(labels, kept)
+        keep = np.zeros(count, bool)
+        keep[touching[area >= float(self.min_part) * area.max()]] = True
+        mask = keep[labels]  # a lookup per label: the kept components
         if self.hole_area > 0:
             mask = self._fill_probable_holes(mask, prob)
         return mask.astype(np.float32)
@@ -432,8 +434,9 @@ class LearnedForeground:
             return mask
         mean = np.bincount(labels.ravel(), weights=prob.ravel(), minlength=count) / np.maximum(
             stats[:, cv2.CC_STAT_AREA], 1)
-        fill = small[mean[small] >= float(self.hole_probability)]
-        return mask | np.isin(labels, fill) if len(fill) else mask
+        fill = np.zeros(count, bool)
+        fill[small[mean[small] >= float(self.hole_probability)]] = True
+        return mask | fill[labels] if fill.any() else mask
 
     def refine_alpha(self, rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         """An RGBA query's alpha ``(H, W)`` with the pixels within ``alpha_band_px`` of its edge decided by the

@@ -72,6 +72,8 @@ def test_score_condition_reads_the_truth_and_masks_as_the_recognizer(tmp_path: P
     assert score_condition(tmp_path, Square(5, 15), use_alpha=False)["per_query"] == [1.0, 1.0]
     assert score_condition(tmp_path, None)["per_query"] == [0.25, 0.5]  # no step: the whole RGB crop
     assert len(condition_crops(tmp_path, limit=1)) == 1
+    (tmp_path / "truth_rgb.jsonl").write_text((tmp_path / "truth.jsonl").read_text().splitlines()[0] + "\n")
+    assert score_condition(tmp_path, Square(5, 15), truth="truth_rgb.jsonl")["per_query"] == [1.0]
     with pytest.raises(MatlError, match=r"no truth\.jsonl"):
         condition_crops(tmp_path / "queries")
     (tmp_path / "truth.jsonl").write_text(json.dumps({"image": "queries/q0000.png"}) + "\n")

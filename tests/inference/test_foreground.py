@@ -12,7 +12,16 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from matl.inference.foreground import GrabCutForeground, foreground_option, mask_query, pose_mask, split_alpha
+from matl.inference.foreground import (
+    FOREGROUNDS,
+    GrabCutForeground,
+    LearnedForeground,
+    foreground_option,
+    mask_query,
+    pose_mask,
+    split_alpha,
+)
+from matl.models.visibility import VisibilityNet
 from matl.utils.errors import MatlError
 from tests.inference.test_api import read_rgb, stub_recognizer
 from tests.predict_helpers import make_files, smooth_texture
@@ -220,3 +229,104 @@ def test_retries_mask_from_wider_insets_and_only_crops_grabcut_segments() -> Non
     for bad in ([0.0], [0.5], ["wide"]):
         with pytest.raises(MatlError, match="retry_insets"):
             GrabCutForeground(retry_insets=bad)
+
+
+# ------------------------------------------------------------------------------------------ foreground=learned
+def tiny_learned(**settings) -> LearnedForeground:
+    """A LearnedForeground around an untrained 32 px network (its masks are arbitrary; its plumbing is not)."""
+    torch.manual_seed(0)
+    return LearnedForeground.from_network(VisibilityNet(size=32, channels=(4, 6, 8)).eval(), **settings)
+
+
+class FixedProbability(LearnedForeground):
+    """LearnedForeground whose probability map is given (the post-processing under test)."""
+
+    def __init__(self, prob: np.ndarray, **settings) -> None:
+        self.__dict__["_given"] = VisibilityNet(size=16, channels=(2, 2, 2))
+        super().__init__(**settings)
+        self.prob = prob
+
+    def probability(self, rgb: np.ndarray) -> np.ndarray:
+        return self.prob
+
+
+def test_learned_probability_runs_in_onnxruntime_like_torch() -> None:
+    pytest.importorskip("onnxruntime")
+    image, _ = clutter_scene()
+    onnx, plain = tiny_learned(threads=1), tiny_learned(runtime="torch")
+    p = onnx.probability(image)
+    assert p.shape == image.shape[:2] and p.dtype == np.float32 and p.min() >= 0.0 and p.max() <= 1.0
+    assert onnx.runtime_in_use == "onnxruntime" and plain.runtime_in_use == "torch" and onnx.failure is None
+    assert np.abs(onnx.logits(image) - plain.logits(image)).max() < 1e-4
+    assert onnx.probability(image[:50, :70]).shape == (50, 70)  # any size: resized to 32 and back
+    assert tiny_learned(size=48).working_size == 48
+
+
+def test_learned_mask_keeps_the_centred_product_and_fills_only_probable_holes() -> None:
+    prob = np.zeros((60, 60), np.float32)
+    prob[15:45, 15:45] = 0.9                     # the product, centred
+    prob[0:10, 50:60] = 0.95                     # a neighbour in the corner, outside the centre region
+    prob[25:28, 25:28] = 0.3                     # a small hole the network was unsure of: filled
+    prob[33:40, 33:40] = 0.02                    # an occluder's hole: stays out
+    image = np.full((60, 60, 3), 0.5, np.float32)
+    step = FixedProbability(prob)
+    mask = step(image)
+    assert mask.dtype == np.float32 and set(np.unique(mask)) <= {0.0, 1.0}
+    assert mask[0:10, 50:60].sum() == 0 and mask[25:28, 25:28].min() == 1.0 and mask[33:40, 33:40].max() == 0.0
+    assert FixedProbability(prob, hole_probability=0.5)(image)[25:28, 25:28].max() == 0.0
+    assert FixedProbability(prob, hole_area=0.0)(image)[25:28, 25:28].max() == 0.0
+    split = np.zeros((60, 60), np.float32)       # an occluder across the product splits it in two parts
+    split[15:45, 15:28] = 0.9
+    split[15:45, 33:45] = 0.9
+    split[20:24, 40:44] = 0.0
+    both = FixedProbability(split)(image)
+    assert both[15:45, 15:28].min() == 1.0 and both[15:45, 33:40].min() == 1.0
+    assert FixedProbability(split, min_part=1.0)(image)[15:45, 33:45].max() == 0.0  # the largest alone
+    corner = np.zeros((60, 60), np.float32)
+    corner[0:8, 0:8] = 0.9                       # nothing in the centre region: every pixel kept
+    assert FixedProbability(corner)(image).min() == 1.0
+    retries = FixedProbability(prob, retry_thresholds=(0.25, 0.6))
+    low, high = retries.retries(image)
+    assert np.array_equal(high, mask) and low[0:10, 50:60].sum() == 0 and low[25:28, 25:28].min() == 1.0
+    assert len(FixedProbability(prob, retry_thresholds=(0.25, 0.92)).retries(image)) == 1  # nothing centred at 0.92
+    assert FixedProbability(prob, retry_thresholds=()).retries(image) == []
+    assert retries.retrying and not FixedProbability(prob, retry_thresholds=[]).retrying
+    black = np.zeros((60, 60, 3), np.float32)
+    black[15:45, 15:45] = 0.7                    # a black border: already segmented, used as given
+    assert step(black).min() == 1.0 and step.retries(black) == []
+    assert FixedProbability(prob, black_fraction=None)(black).min() == 0.0
+
+
+def test_learned_alpha_band_and_options(tmp_path: Path) -> None:
+    prob = np.zeros((40, 40), np.float32)
+    prob[10:30, 10:30] = 0.9
+    image = np.full((40, 40, 3), 0.5, np.float32)
+    grown = np.zeros((40, 40), np.float32)
+    grown[7:33, 7:33] = 1.0                      # 3 px too wide
+    refined = FixedProbability(prob, alpha_band_px=4).refine_alpha(image, grown)
+    assert refined[10:30, 10:30].min() == 1.0 and refined.sum() == 400
+    assert FixedProbability(prob).refine_alpha(image, grown) is grown  # alpha_band_px=0: as given
+    for bad in ({"threshold": 1.0}, {"retry_thresholds": [0.0]}, {"retry_thresholds": ["low"]}, {"centre": 0.0},
+                {"alpha_band_px": -1}, {"size": 20}, {"runtime": "tensorrt"}, {"threads": 0}):
+        with pytest.raises(MatlError, match="foreground learned"):
+            tiny_learned(**bad)
+    with pytest.raises(MatlError, match="not found"):
+        LearnedForeground(weights=str(tmp_path / "missing.ckpt"))
+    node = OmegaConf.load(REPO / "conf" / "foreground" / "learned.yaml")
+    step = foreground_option(node)
+    assert isinstance(step, LearnedForeground) and step.threshold == node.threshold
+    assert isinstance(foreground_option("learned"), LearnedForeground)
+    assert "learned" in FOREGROUNDS
+    with pytest.raises(MatlError, match="foreground: "):
+        foreground_option(OmegaConf.create({"_target_": "matl.inference.foreground.LearnedForeground", "inset": 1}))
+
+
+def test_recognizer_with_the_learned_foreground(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    scene, _ = cluttered_query(queries, "green_can")
+    rec = stub_recognizer(threshold=None, foreground="learned").enrol(gallery)
+    assert isinstance(rec.foreground, LearnedForeground)
+    match = rec.predict(scene)
+    assert match.object in rec.objects and match.H.shape == (3, 3)
+    options = rec.options()["foreground"]
+    assert options["threshold"] == 0.5 and options["retry_thresholds"] == (0.3, 0.7)

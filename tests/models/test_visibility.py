@@ -96,7 +96,7 @@ def test_a_few_steps_fit_a_centred_square() -> None:
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
-    assert float(loss) < 0.5 * first
+    assert float(loss.detach()) < 0.5 * first
 
 
 def test_published_checkpoints_load_and_bad_files_are_one_line(tmp_path: Path) -> None:
@@ -120,3 +120,17 @@ def test_published_checkpoints_load_and_bad_files_are_one_line(tmp_path: Path) -
                 "matl_visibility": {**net.config, "channels": [4, 6, 9]}}, tmp_path / "mismatch.ckpt")
     with pytest.raises(MatlError, match="does not fit"):
         load_visibility_net(tmp_path / "mismatch.ckpt")
+
+
+def test_the_shipped_network_loads_safely_and_is_small() -> None:
+    from matl.models.visibility import FOREGROUND_WEIGHTS
+
+    if not FOREGROUND_WEIGHTS.is_file():
+        pytest.skip("this install ships no visibility network")
+    assert FOREGROUND_WEIGHTS.stat().st_size < 1_000_000
+    slim = torch.load(FOREGROUND_WEIGHTS, weights_only=True)
+    assert slim["format"] == VISIBILITY_FORMAT and set(slim) == {"format", "state_dict", "matl_visibility",
+                                                                  "matl_metrics"}
+    net = load_visibility_net()
+    assert net.size == slim["matl_visibility"]["size"] and 0.0 < slim["matl_metrics"]["val_iou"] <= 1.0
+    assert net(torch.rand(1, 3, net.size, net.size)).shape == (1, 1, net.size, net.size)
