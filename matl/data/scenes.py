@@ -193,8 +193,8 @@ class SceneMaker:
         rng = np.random.default_rng([int(self.seed), int(index)])
         g = torch.Generator().manual_seed(int(rng.integers(2**62)))
         plane = int(rng.integers(cs.num_planes))
-        H = self.homography.sample(1, (S, S), g, self._footprints[plane:plane + 1])[0].numpy()
-        target, visible = self._warp(plane, H)
+        query_H_canon = self.homography.sample(1, (S, S), g, self._footprints[plane:plane + 1])[0].numpy()
+        target, visible = self._warp(plane, query_H_canon)
 
         draw = rng.random()
         kind = "black" if draw < self.black_p else "floor" if draw < self.black_p + self.floor_p else "bank"
@@ -211,9 +211,10 @@ class SceneMaker:
             other = self._other_plane(plane, rng)
             angle = rng.uniform(0.0, 2.0 * math.pi)
             d = rng.uniform(*self.neighbour_distance) * S
-            move = np.array([[1.0, 0.0, d * math.cos(angle)], [0.0, 1.0, d * math.sin(angle)], [0.0, 0.0, 1.0]])
-            pose = self.homography.sample(1, (S, S), g)[0].numpy()
-            image, mask = self._warp(other, move @ pose)
+            moved_H_query = np.array([[1.0, 0.0, d * math.cos(angle)], [0.0, 1.0, d * math.sin(angle)],
+                                      [0.0, 0.0, 1.0]])
+            own_H_canon = self.homography.sample(1, (S, S), g)[0].numpy()  # its own pose, centred
+            image, mask = self._warp(other, moved_H_query @ own_H_canon)
             scene = image + (1.0 - mask[..., None]) * scene
         scene = target + (1.0 - visible[..., None]) * scene  # the target on top: its coverage is visible
 
@@ -229,7 +230,8 @@ class SceneMaker:
 
         shot = self.photometric(torch.from_numpy(np.ascontiguousarray(scene.transpose(2, 0, 1)))[None].float(), g)
         image = np.round(shot[0].permute(1, 2, 0).numpy() * 255.0) / 255.0  # 8 bits, as a camera's file
-        return Scene(np.ascontiguousarray(image, dtype=np.float32), visible.astype(np.float32), plane, H, info)
+        return Scene(np.ascontiguousarray(image, dtype=np.float32), visible.astype(np.float32), plane, query_H_canon,
+                     info)
 
 
 def _settings(node: Any) -> dict[str, Any]:
