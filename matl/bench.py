@@ -22,6 +22,14 @@ Speed is measured against a reference measured *in the same run* on the same mac
   query measured once on real images (``fixed_query_ms``). With faiss, its latency, build time and
   recall@1 against exact search are listed too.
 * ``render_images_per_s``: canonical renders of ``data.source`` (:func:`matl.data.render_speed.render_images_per_s`).
+* ``query_ms_camera``: what a camera delivers, ``bench.camera.crops`` RGB crops without a mask (products of
+  ``camera_data``, the held-out ones, on real backgrounds, with neighbours, occluders and camera effects),
+  decoded once, the same for ``matl``, ``matl_refine``, ``matl_fast_refine`` (the shipped models, whatever
+  ``ckpt=`` says) and ``sift_ransac``, each through the public API with the run's ``foreground`` (the foreground
+  step and its retries timed), batch of 1 and ``query_ms_camera_batch`` (``bench.batch`` crops a call);
+  ``speedup_camera_vs_sift[_batch]`` beside them, ``camera_timing`` how, and ``query_timing.breakdown_camera``
+  where the milliseconds go (decode, foreground, networks, search, verification, refinement, retries)
+  (:mod:`matl.evaluation.camera_speed`).
 
 ``bench.quick=true`` merges ``bench_quick`` over ``bench``: a smoke run of a few seconds (the tests'),
 whose numbers are not measurements.
