@@ -1,17 +1,25 @@
-"""``python -m matl.export ckpt=<path> out=<dir> [format=torchscript|export|onnx]``: the inference path without matl.
+"""``python -m matl.export ckpt=<path>|pretrained|pretrained_fast out=<dir> [format=torchscript|export|onnx]``.
 
-Writes two self-contained networks and a description into ``out``:
+The inference path without matl. Writes self-contained networks and a description into ``out``:
 
 * ``gallery_net.<ext>``: ``c()``, ``(B, 3, S, S) -> (B, D)`` embeddings of gallery anchors (enrol once).
 * ``query_net.<ext>``: ``s()`` then ``c()`` on queries, ``(B, 3, S, S) -> (embedding (B, D),
   query_H_anchor (B, 3, 3) pixel homography, degenerate (B,) bool, warped (B, 3, S, S))``.
+* ``align_net.<ext>`` (a checkpoint with an alignment stage, ``model.align``, as the shipped default
+  model): ``(images, anchors, stn_query_H_anchor, warped) -> query_H_anchor``, run after the search
+  against the anchor found (:class:`matl.inference.export.AlignGraph`); its ``query_H_anchor`` is the
+  pose ``matl.predict`` and ``matl.Recognizer`` give without refinement.
 * ``export.json``: image size, N, embedding size, the checkpoint's sha256, the largest difference
   between exported and eager outputs (per network and per output) measured right after export, and
   what a user of the files alone needs: input layout, outputs, recognition, pose, the anchors'
   matrices and the mapping to the original image's pixels.
 
 Recognition is then ``argmin_g ||gallery_emb[g] - query_emb||`` and the pose
-``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md), a few lines in any runtime.
+``query_H_canon = query_H_anchor @ anchor_H_canon[g]`` (docs/design.md), a few lines in any runtime;
+``scripts/onnx_predict_example.py`` is that path with numpy, OpenCV and onnxruntime alone (docs/usage.md).
+
+The files are written into a temporary folder and moved into ``out`` once every check has passed; an
+earlier export's files in ``out`` are replaced only with ``overwrite=true`` (checked before any work).
 
 Formats: ``torchscript`` (default; ``.pt``, ``torch.jit.load`` in Python or libtorch in C++, no matl or
 kornia needed), ``export`` (``torch.export``, ``.pt2`` files loaded with ``torch.export.load``) or

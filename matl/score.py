@@ -24,6 +24,10 @@ them: both file-pixel ``H`` are taken into the model frame with the resize-and-p
 values predict ran with), ``model_H = query_model_H_file @ H @ inv(gallery_model_H_file)``. Writes
 ``score.json`` (metrics, per-object accuracy and the most frequent confusions) and
 ``per_query.csv``.
+
+``ckpt=`` takes a path or a shipped model's name (``pretrained``, ``pretrained_fast``); ``out`` is checked
+before the scoring (a ``score.json`` or ``per_query.csv`` already there is replaced only with
+``overwrite=true``).
 """
 
 from __future__ import annotations
@@ -32,12 +36,24 @@ from omegaconf import DictConfig
 
 from matl.utils.cli import command
 
+OUTPUTS = ("score.json", "per_query.csv")
+
+
+def score(cfg: DictConfig) -> dict:
+    """``matl.score``'s work: ``ckpt=`` resolved (:func:`matl.models.checkpoint.resolve_ckpt_option`) and ``out``
+    checked first, then :func:`matl.evaluation.score.run`."""
+    from matl.evaluation.score import run  # torch and the models load after composition
+    from matl.models.checkpoint import resolve_ckpt_option
+    from matl.utils.io import check_output_folder, overwrite_option
+
+    resolve_ckpt_option(cfg)
+    check_output_folder(cfg.out, OUTPUTS, "out", overwrite_option(cfg))
+    return run(cfg)
+
 
 @command("score")
 def main(cfg: DictConfig) -> None:
-    from matl.evaluation.score import run  # torch and the models load after composition
-
-    run(cfg)
+    score(cfg)
 
 
 if __name__ == "__main__":

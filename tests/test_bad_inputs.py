@@ -370,6 +370,153 @@ def rebuilt_with_warning(result: tuple[CanonicalSet, list[str]], ctx: Ctx) -> No
     assert load_canonical(TinySource(), 16, ctx.tmp).num_planes == 2  # and the rebuilt file is good
 
 
+# ------------------------------------------------------------------- outputs a user named (out=, viz_dir=)
+EARLIER = '{"image": "earlier.png", "object": "tea"}\n' * 100  # a complete earlier result
+
+
+def earlier_result(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(EARLIER)
+    return path
+
+
+def read_only_folder(ctx: Ctx) -> Path:
+    """A folder nothing can be written in: a 0o555 folder, or (as root, who may write there anyway) a folder
+    of a read-only filesystem."""
+    folder = ctx.tmp / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        (folder / "probe").write_text("")
+    except OSError:
+        return folder
+    (folder / "probe").unlink()
+    folder.chmod(0o755)
+    for candidate in (Path("/sys"), Path("/proc")):
+        try:
+            (candidate / "matl_probe").write_text("")
+        except OSError:
+            return candidate
+    pytest.skip("no read-only folder on this machine (root may write anywhere here)")
+
+
+def predict_cli_out(out: Callable[[Ctx], Path], extra: list[str] | Callable[[Ctx], list[str]] | None = None,
+                    keeps: Callable[[Ctx], Path] | None = None) -> Callable[[Ctx], Any]:
+    """``python -m matl.predict`` with a good gallery and query and ``out=`` (then ``keeps``' file must be intact)."""
+    def run(ctx: Ctx) -> subprocess.CompletedProcess:
+        gallery = good_gallery(ctx.tmp / "gallery")
+        queries = png(ctx.tmp / "q" / "q.png", colour())
+        more = extra(ctx) if callable(extra) else extra or []
+        result = run_cli(ctx, "matl.predict", [f"ckpt={ctx.checkpoint()}", f"gallery={gallery}", f"images={queries}",
+                                               f"out={out(ctx)}", "cache=false", *more])
+        if keeps is not None:
+            assert keeps(ctx).read_text() == EARLIER, "an earlier result was changed"
+        return result
+    return run
+
+
+def below_a_file(ctx: Ctx) -> Path:
+    (ctx.tmp / "notes.txt").write_text("a file, not a folder")
+    return ctx.tmp / "notes.txt" / "sub" / "out.jsonl"
+
+
+def rerun_with_overwrite(ctx: Ctx) -> list[str]:
+    out = earlier_result(ctx.tmp / "out.jsonl")
+    gallery, queries = good_gallery(ctx.tmp / "gallery"), png(ctx.tmp / "q" / "q.png", colour())
+    predict(predict_cfg(ctx, ctx.checkpoint(), gallery, queries, ["overwrite=true", "threshold=null"]))
+    return out.read_text().splitlines()
+
+
+def replaced_by_one_answer(lines: list[str], ctx: Ctx) -> None:
+    assert len(lines) == 1 and json.loads(lines[0])["image"].endswith("q.png")
+
+
+def export_cli(out: Callable[[Ctx], Path], ckpt: Callable[[Ctx], Path | str] | None = None) -> Callable[[Ctx], Any]:
+    def run(ctx: Ctx) -> subprocess.CompletedProcess:
+        return run_cli(ctx, "matl.export", [f"ckpt={ckpt(ctx) if ckpt else ctx.checkpoint()}", f"out={out(ctx)}"])
+    return run
+
+
+def earlier_export(ctx: Ctx) -> Path:
+    earlier_result(ctx.tmp / "exported" / "export.json")
+    return ctx.tmp / "exported"
+
+
+def score_cli(out: Callable[[Ctx], Path], ckpt: Callable[[Ctx], Path | str] | None = None) -> Callable[[Ctx], Any]:
+    def run(ctx: Ctx) -> subprocess.CompletedProcess:
+        (ctx.tmp / "truth.jsonl").write_text(json.dumps({"image": "q.png", "object": "tea"}) + "\n")
+        (ctx.tmp / "pred.jsonl").write_text(json.dumps({"image": "q.png", "object": "tea"}) + "\n")
+        return run_cli(ctx, "matl.score", [f"predictions={ctx.tmp / 'pred.jsonl'}", f"truth={ctx.tmp / 'truth.jsonl'}",
+                                           f"ckpt={ckpt(ctx) if ckpt else ctx.checkpoint()}", f"out={out(ctx)}"])
+    return run
+
+
+def viz_pictures(ctx: Ctx) -> Path:
+    png(ctx.tmp / "pictures" / "q.png", colour())
+    return ctx.tmp / "pictures"
+
+
+# ------------------------------------------------------------------------ checkpoints that are other files
+def torchscript_file(ctx: Ctx) -> Path:
+    torch.jit.save(torch.jit.script(torch.nn.Linear(2, 2)), str(ctx.tmp / "query_net.pt"))
+    return ctx.tmp / "query_net.pt"
+
+
+def gallery_file(ctx: Ctx) -> Path:
+    torch.save({"format": 2, "model_id": "x", "planes": []}, ctx.tmp / "gallery.pt")
+    return ctx.tmp / "gallery.pt"
+
+
+def predict_cli_ckpt(ckpt: Callable[[Ctx], Path]) -> Callable[[Ctx], Any]:
+    def run(ctx: Ctx) -> subprocess.CompletedProcess:
+        gallery, queries = good_gallery(ctx.tmp / "gallery"), png(ctx.tmp / "q" / "q.png", colour())
+        result = run_cli(ctx, "matl.predict", [f"ckpt={ckpt(ctx)}", f"gallery={gallery}", f"images={queries}",
+                                               f"out={ctx.tmp / 'out.jsonl'}"])
+        assert "weights_only` set to `False`" not in result.stdout + result.stderr  # torch's advice is not passed on
+        return result
+    return run
+
+
+# ----------------------------------------------------------------------- images and names given to the API
+def api_recognizer(ctx: Ctx) -> Any:
+    from matl import Recognizer
+
+    return Recognizer.from_checkpoint(ctx.checkpoint(), threshold=None).enrol(good_gallery(ctx.tmp / "gallery"),
+                                                                            cache=False)
+
+
+def api_predict(make: Callable[[], Any]) -> Callable[[Ctx], Any]:
+    return lambda ctx: api_recognizer(ctx).predict(make())
+
+
+def api_add(object: Any, plane: Any, make: Callable[[], Any] = lambda: colour(40, 50)) -> Callable[[Ctx], Any]:
+    from matl import Recognizer
+
+    def run(ctx: Ctx) -> Any:
+        return Recognizer.from_checkpoint(ctx.checkpoint(), threshold=None).add(object, plane, make())
+    return run
+
+
+def with_nan(image: np.ndarray, count: int = 1) -> np.ndarray:
+    image = image.astype(np.float32) / 255.0
+    image.flat[:count] = np.nan
+    return image
+
+
+def grey_answered(match: Any, ctx: Ctx) -> None:
+    assert match.nearest_object in ("red_box", "green_can") and np.isfinite(match.H).all()
+
+
+def enrol_with_a_tiny_file(ctx: Ctx) -> Any:
+    gallery = good_gallery(ctx.tmp / "gallery")
+    png(gallery / "speck" / "front.png", colour(1, 1))
+    return api_recognizer(ctx)
+
+
+def tiny_file_skipped(recognizer: Any, ctx: Ctx) -> None:
+    assert recognizer.objects == ["green_can", "red_box"]
+
+
 CASES = [
     # --- config values (python -m matl.train ...): before any data, model, torch or Lightning
     train_cli("train N=0 (no anchors)", ["N=0"], "N=0 is invalid"),
@@ -480,6 +627,61 @@ CASES = [
     call("mesh: without texture (render data=meshes)", untextured_mesh_render, "plain_box.obj: mesh has no texture"),
     call("mesh: a file that is not a mesh", not_a_mesh, "broken.obj"),
     call("cache: corrupt canonical-image cache is rebuilt with a warning", corrupt_cache, check=rebuilt_with_warning),
+    # --- outputs a user named: checked before any work, an existing file replaced only with overwrite=true
+    call("predict out= a file from an earlier run (no overwrite=true): kept whole",
+         predict_cli_out(lambda c: earlier_result(c.tmp / "earlier.jsonl"), keeps=lambda c: c.tmp / "earlier.jsonl"),
+         "already exists: pass overwrite=true to replace it"),
+    call("predict out= a file from an earlier run, overwrite=true: replaced when complete", rerun_with_overwrite,
+         check=replaced_by_one_answer),
+    call("predict out= an existing folder", predict_cli_out(lambda c: c.tmp), "is a folder: name a file in it"),
+    call("predict out= in a read-only folder", predict_cli_out(lambda c: read_only_folder(c) / "sub" / "out.jsonl"),
+         "is read-only; choose another out="),
+    call("predict out= below a file (folder cannot be created)", predict_cli_out(below_a_file),
+         "cannot be created: "),
+    call("predict viz_dir= holding pictures (no overwrite=true)",
+         predict_cli_out(lambda c: c.tmp / "new.jsonl", lambda c: ["viz=true", f"viz_dir={viz_pictures(c)}"]),
+         "already holds q.png: pass overwrite=true"),
+    call("predict overwrite=maybe", predict_cli_out(lambda c: c.tmp / "new.jsonl", ["overwrite=maybe"]),
+         "overwrite=maybe is invalid"),
+    call("export out= holding an earlier export (no overwrite=true)", export_cli(earlier_export),
+         "already holds export.json: pass overwrite=true"),
+    call("export out= a file", export_cli(lambda c: earlier_result(c.tmp / "export.txt")), "is a file, not a folder"),
+    call("score out= holding an earlier score.json (no overwrite=true)",
+         score_cli(lambda c: earlier_result(c.tmp / "scored" / "score.json").parent),
+         "already holds score.json: pass overwrite=true"),
+    # --- checkpoints that are other files: one line, torch's weights_only=False advice never passed on
+    call("checkpoint: text file (predict command line)", predict_cli_ckpt(text_checkpoint),
+         "not a torch checkpoint file"),
+    call("checkpoint: a TorchScript file (export's output) as ckpt=", predict_cli_ckpt(torchscript_file),
+         "a TorchScript file"),
+    call("checkpoint: a saved gallery as ckpt=", predict_cli_ckpt(gallery_file), "has no state_dict"),
+    call("checkpoint: export ckpt= a text file", export_cli(lambda c: c.tmp / "e", text_checkpoint),
+         "cannot be read safely"),
+    call("checkpoint: score ckpt= a text file", score_cli(lambda c: c.tmp / "s", text_checkpoint),
+         "cannot be read safely"),
+    # --- images and names given to the Python API
+    call("api: float image with 0-255 values", api_predict(lambda: colour().astype(np.float32)),
+         "float pixels must be in [0, 1]"),
+    call("api: float image with negative values", api_predict(lambda: colour().astype(np.float32) / 255.0 - 0.5),
+         "float pixels must be in [0, 1]"),
+    call("api: NaN pixels", api_predict(lambda: with_nan(colour())), "NaN or infinite"),
+    call("api: infinite pixels", api_predict(lambda: np.full((30, 40, 3), np.inf, np.float32)), "NaN or infinite"),
+    call("api: HxW grey uint8 array works (matched against the grey gallery)",
+         api_predict(lambda: colour()[..., 0]), check=grey_answered),
+    call("api: (1, H, W) grey float tensor works",
+         api_predict(lambda: torch.from_numpy(colour()[..., 0] / 255.0)[None]), check=grey_answered),
+    call("api: add('../x', ...)", api_add("../x", "front"), "object='../x' is not a name"),
+    call("api: add('', ...)", api_add("", "front"), "object='' is not a name"),
+    call("api: add(None, ...)", api_add(None, "front"), "object=None is not a name"),
+    call("api: add('tea', 'a/b', ...)", api_add("tea", "a/b"), "plane='a/b' is not a name"),
+    call("api: add() of a 1 x 1 image", api_add("tea", "front", lambda: colour(1, 1)), "at least 8 px a side"),
+    call("api: add() of an all-NaN image", api_add("tea", "front", lambda: np.full((40, 50, 3), np.nan)),
+         "NaN or infinite"),
+    call("api: add() of an all-black image", api_add("tea", "front", lambda: np.zeros((40, 50, 3), np.uint8)),
+         "is empty"),
+    call("api: add() of None", api_add("tea", "front", lambda: None), "got None instead of an image"),
+    call("gallery: a 1 x 1 file is reported and skipped, the rest enrolled", enrol_with_a_tiny_file,
+         check=tiny_file_skipped),
 ]
 
 

@@ -422,8 +422,13 @@ def load_model(cfg: DictConfig) -> tuple[Any | None, str]:
     ckpt_path = cfg.get("ckpt")
     if not ckpt_path:
         return None, "untrained: the default config's model, randomly initialised (speed does not depend on weights)"
-    from matl.inference.api import SHIPPED, resolve_checkpoint_keyword
-    from matl.models.checkpoint import build_model, checkpoint_info, load_checkpoint
+    from matl.models.checkpoint import (
+        SHIPPED,
+        build_model,
+        checkpoint_info,
+        load_checkpoint,
+        resolve_checkpoint_keyword,
+    )
 
     pretrained = str(ckpt_path) in SHIPPED  # ckpt=pretrained / pretrained_fast
     ckpt_path = resolve_checkpoint_keyword(str(ckpt_path))

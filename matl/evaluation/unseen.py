@@ -387,7 +387,7 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
     from matl.utils.io import write_json
 
     conditions, methods = _check(cfg)
-    from matl.inference.api import resolve_checkpoint_keyword
+    from matl.models.checkpoint import resolve_checkpoint_keyword
 
     ckpt_path = Path(resolve_checkpoint_keyword(str(cfg.ckpt))).expanduser().resolve()  # pretrained[_fast]: shipped
     ckpt = load_checkpoint(ckpt_path)

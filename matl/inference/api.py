@@ -40,13 +40,25 @@ query that fails verification (a camera's blur, noise or JPEG, a poor mask, a po
 clearly nearer its product than any other; ``verify_or_ratio`` (with a lower quantile, e.g. 0.88)
 keeps the ratio's own threshold for those, trading unknowns let through for known products kept.
 
+Grey queries (``HxW`` arrays, grey files, or equal colour channels) are answered against the grey (luma)
+twins of the enrolled planes, embedded and calibrated once at the first grey query: a grey crop can
+only be recognised by what its product looks like in grey.
+
+The calibration is kept: :meth:`Recognizer.save` stores its samples, and a gallery enrolled from a
+folder with ``cache=True`` keeps them beside the features' cache
+(:meth:`Recognizer.calibration_cache_file`), each keyed by the model, every plane's image and the
+calibration options (:meth:`Recognizer.calibration_key`), so a new process answers its first query
+without calibrating again.
+
 One call at a time: the methods take a lock, so one recognizer can be shared by threads that take
 turns; for parallel queries make one recognizer per thread (they share nothing global).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import logging
 import threading
 import zlib
 from collections.abc import Sequence
@@ -63,46 +75,41 @@ from matl.data.image_files import fit_to_model, load_image_file, pose_in_files, 
 from matl.geometry import HomographySampler, compose_query_H_canon, warp_image
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import ForegroundStep, foreground_option, mask_query, pose_mask
-from matl.inference.gallery import build_gallery, enrol_gallery
+from matl.inference.gallery import build_gallery, enrol_gallery, report_skipped
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import RUNTIMES, runtime_path
 from matl.inference.verify import CandidatePose, Verification, verify_candidates
-from matl.models.checkpoint import load_embedding_model
+from matl.models.checkpoint import (
+    PRETRAINED,
+    PRETRAINED_FAST,
+    SHIPPED,
+    load_embedding_model,
+    resolve_checkpoint_keyword,
+    shipped_checkpoint,
+)
 from matl.models.prediction import Prediction
 from matl.models.recognizer import TensorRecognizer, embed
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
 from matl.utils.timing import StageTimer, stage
 
-__all__ = ["Match", "Recognizer", "calibrate_open_set", "load_embedding_model", "shipped_checkpoint"]
+# the shipped models' names and paths are matl.models.checkpoint's (the one resolver of ckpt=), importable here too
+__all__ = ["PRETRAINED", "PRETRAINED_FAST", "SHIPPED", "Match", "Recognizer", "calibrate_open_set",
+           "load_embedding_model", "resolve_checkpoint_keyword", "shipped_checkpoint"]
+
+_log = logging.getLogger(__name__)
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
-GALLERY_FORMAT = 1  # bump when save()'s content changes meaning
-PRETRAINED = Path(__file__).resolve().parents[1] / "weights" / "matl_default.ckpt"
-#: the fast model (experiment=pretrained_fast: a cheaper s(), no alignment stage; meant for refine=True)
-PRETRAINED_FAST = PRETRAINED.with_name("matl_fast.ckpt")
-#: the ``ckpt=`` keywords of the command line that name the shipped models, and ``Recognizer.pretrained``'s names
-SHIPPED = {"pretrained": "default", "pretrained_fast": "fast"}
-
-
-def shipped_checkpoint(name: str = "default") -> Path:
-    """The path of a model shipped inside the package, ``default`` or ``fast``; a one-line error when this install
-    lacks it."""
-    paths = {"default": PRETRAINED, "fast": PRETRAINED_FAST}
-    if name not in paths:
-        raise MatlError(f"no shipped model is called {name!r}: use one of {', '.join(paths)}")
-    if not paths[name].is_file():
-        raise MatlError(f"no pretrained model ships with this version of matl ({paths[name]} is missing): "
-                        "train one with python -m matl.train and use "
-                        "Recognizer.from_checkpoint(<run>/checkpoints/best.ckpt)")
-    return paths[name]
-
-
-def resolve_checkpoint_keyword(ckpt: Any) -> Any:
-    """``ckpt=pretrained`` / ``pretrained_fast`` -> the shipped model's path; any other value as it is."""
-    return str(shipped_checkpoint(SHIPPED[ckpt])) if isinstance(ckpt, str) and ckpt in SHIPPED else ckpt
+GALLERY_FORMAT = 2  # bump when save()'s content changes meaning (2: the calibration samples, no per-plane copies)
+READABLE_GALLERY_FORMATS = (1, 2)
+CALIBRATION_FORMAT = 1  # bump when the calibration's samples change meaning: cached ones then miss their key
+CALIBRATION_PREFIX = ".matl_calibration_"
+#: px: a gallery image whose shorter side is below this carries too little of the product to match
+MIN_GALLERY_SIDE = 8
+#: ITU-R BT.601 luma weights (OpenCV's and PIL's RGB -> grey): a grey query is matched against its gallery's grey
+LUMA = (0.299, 0.587, 0.114)
 
 
 @dataclass
@@ -178,33 +185,112 @@ def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> Photomet
     raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
 
 
+#: how far outside [0, 1] float pixels may stray (rounding of the caller's arithmetic) before it is a scale error
+FLOAT_SLACK = 1.0 / 512.0  # half a step of 8 bits
+
+
 def _as_rgb(image: Any, what: str, keep_alpha: bool = False) -> np.ndarray:
     """A query or gallery image as float32 ``(H, W, 3)`` RGB in [0, 1], transparent pixels set to 0; with
-    ``keep_alpha`` an image with an alpha channel stays ``(H, W, 4)`` RGBA (alpha = mask)."""
+    ``keep_alpha`` an image with an alpha channel stays ``(H, W, 4)`` RGBA (alpha = mask).
+
+    Arrays: ``HxWx3`` RGB, ``HxWx4`` RGBA, or grey ``HxW`` / ``HxWx1`` (replicated to 3 channels, as a grey
+    file is); tensors: ``(3|4, H, W)``, or grey ``(H, W)`` / ``(1, H, W)``. ``uint8`` pixels are 0-255, float
+    pixels 0-1: a float image with values above 1 (0-255 floats), below 0, NaN or infinite is refused in
+    one line, never clipped into another picture.
+    """
     if isinstance(image, (str, Path)):
         if keep_alpha:
             rgb, alpha = read_rgba(image)
             return rgb if alpha is None else np.ascontiguousarray(np.concatenate([rgb, alpha[..., None]], -1))
         return load_image_file(image)
+    if image is None:
+        raise MatlError(f"{what}: got None instead of an image (a path, an HxWx3 uint8 array or a tensor)")
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu()
-        if image.ndim != 3 or image.shape[0] not in (3, 4):
-            raise MatlError(f"{what}: a tensor image must be (3, H, W) or (4, H, W), got {tuple(image.shape)}")
-        image = image.permute(1, 2, 0).numpy()
+        if image.ndim == 3 and image.shape[0] == 1:
+            image = image[0]
+        if image.ndim == 3 and image.shape[0] in (3, 4):
+            image = image.permute(1, 2, 0)
+        elif image.ndim != 2:
+            raise MatlError(f"{what}: a tensor image must be (3, H, W), (4, H, W) or grey (H, W), got "
+                            f"{tuple(image.shape)}")
+        image = image.numpy()
     array = np.asarray(image)
+    if array.ndim == 3 and array.shape[-1] == 1:
+        array = array[..., 0]
     if array.ndim == 2:
         array = np.repeat(array[..., None], 3, axis=-1)
     if array.ndim != 3 or array.shape[-1] not in (3, 4) or array.shape[0] == 0 or array.shape[1] == 0:
-        raise MatlError(f"{what}: expected an HxWx3 RGB or HxWx4 RGBA image, got shape {array.shape}")
+        raise MatlError(f"{what}: expected an HxWx3 RGB, HxWx4 RGBA or HxW grey image, got shape {array.shape}")
     if array.dtype == np.uint8:
         x = array.astype(np.float32) / 255.0
     elif array.dtype.kind == "f":
-        x = np.clip(np.nan_to_num(array.astype(np.float32)), 0.0, 1.0)
+        x = array.astype(np.float32)
+        if not np.isfinite(x).all():
+            raise MatlError(f"{what}: {int((~np.isfinite(x)).sum())} pixel value(s) are NaN or infinite: "
+                            "replace them (e.g. np.nan_to_num) before passing the image")
+        low, high = float(x.min()), float(x.max())
+        if high > 1.0 + FLOAT_SLACK or low < -FLOAT_SLACK:
+            hint = "divide by 255 (or pass uint8)" if high > 1.0 + FLOAT_SLACK else "rescale them into [0, 1]"
+            raise MatlError(f"{what}: float pixels must be in [0, 1], these span [{low:g}, {high:g}]: {hint}")
+        x = np.clip(x, 0.0, 1.0)
     else:
         raise MatlError(f"{what}: expected uint8 (0-255) or float (0-1) pixels, got {array.dtype}")
     if x.shape[-1] == 4 and not keep_alpha:  # alpha is the segmentation mask: background becomes 0, as in training
         x = x[..., :3] * x[..., 3:4]
     return np.ascontiguousarray(x)
+
+
+def _check_name(value: Any, kind: str, call: str) -> str:
+    """``value`` if it is a usable object or plane name (it stands for a folder or file of a gallery folder)."""
+    if (not isinstance(value, str) or not value.strip() or "/" in value or "\\" in value or ".." in value
+            or any(ord(c) < 32 for c in value)):
+        raise MatlError(f"{call}: {kind}={value!r} is not a name: use a non-empty string without '/', '\\', '..' or "
+                        f"control characters, e.g. {'tea' if kind == 'object' else 'front'!r}")
+    return value
+
+
+def _gallery_image_problem(file_size: tuple[int, int], canon_u8: torch.Tensor) -> str | None:
+    """Why a canonical image cannot be enrolled (too small, or nothing but background), or None."""
+    if min(file_size) < MIN_GALLERY_SIDE:
+        return (f"is {file_size[1]}x{file_size[0]} px: a gallery image needs at least {MIN_GALLERY_SIDE} px a side "
+                "(a top-down photo or render of the face)")
+    if not bool(canon_u8.any()):
+        return "is empty (every pixel is 0, the background): nothing to recognise"
+    return None
+
+
+def _is_grey(image: np.ndarray) -> bool:
+    """Whether an ``(H, W, 3|4)`` image's colour channels are equal everywhere (a grey image); a subsample first,
+    so a colour image costs a few microseconds."""
+    step = max(1, min(image.shape[:2]) // 16)
+    few = image[::step, ::step]
+    if not (np.array_equal(few[..., 0], few[..., 1]) and np.array_equal(few[..., 1], few[..., 2])):
+        return False
+    return bool(np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(image[..., 1], image[..., 2]))
+
+
+def _grey_u8(canon_u8: torch.Tensor) -> torch.Tensor:
+    """``(3, S, S)`` uint8 canonical image -> its luma (:data:`LUMA`) in all three channels."""
+    weights = torch.tensor(LUMA, dtype=torch.float32)[:, None, None]
+    luma = (canon_u8.float() * weights).sum(0).round().clamp(0, 255).to(torch.uint8)
+    return luma.expand(3, -1, -1).clone()
+
+
+def _concat(a: Any, b: Any) -> Any:
+    """Two tensors, or dataclasses of per-query tensors (:class:`Prediction`), one after the other (None stays)."""
+    if isinstance(a, torch.Tensor):
+        return torch.cat([a, b.to(a.device, a.dtype)])
+    return dataclasses.replace(a, **{f.name: _concat(getattr(a, f.name), getattr(b, f.name))
+                                     for f in dataclasses.fields(a) if getattr(a, f.name) is not None})
+
+
+def _rows(value: Any, index: torch.Tensor) -> Any:
+    """The rows ``index`` of a tensor or of each tensor of a dataclass of per-query tensors."""
+    if isinstance(value, torch.Tensor):
+        return value[index.to(value.device)]
+    return dataclasses.replace(value, **{f.name: _rows(getattr(value, f.name), index)
+                                         for f in dataclasses.fields(value) if getattr(value, f.name) is not None})
 
 
 def _with_rows(value: Any, rows: list[int], source: Any, source_rows: list[int]) -> Any:
@@ -332,15 +418,44 @@ class Recognizer:
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
         self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
+        #: samples of the open-set statistic with the key they were made under (calibration_key): from load(), the
+        #: enrolment folder's cache or the last calibration
+        self._stored_calibration: dict[str, Any] | None = None
+        #: (folder, ids of the planes enrol() took from it): the calibration of exactly those planes is cached there
+        self._calibration_folder: tuple[Path, list[int]] | None = None
+        self._grey: Recognizer | None = None  # the same recognizer over its gallery's grey twins (grey queries)
+        self._variant = "rgb"  # "grey" for that twin
         #: filled with each stage's milliseconds while set (:meth:`time_stages`); None: no timing, no cost
         self.stage_timer: StageTimer | None = None
 
     # -------------------------------------------------------------------------------- construction
     @classmethod
     def from_checkpoint(cls, path: str | Path, **options: Any) -> Recognizer:
-        """A recognizer for a ``matl.train`` checkpoint; ``options`` as the constructor's."""
-        model, size, num_anchors, sha = load_embedding_model(path, device="cpu")
-        return cls(model, size, num_anchors, sha, **options)
+        """A recognizer for a ``matl.train`` checkpoint (or ``pretrained`` / ``pretrained_fast``, the shipped
+        models, as ``ckpt=`` names them); ``options`` as the constructor's."""
+        model, size, num_anchors, sha = load_embedding_model(resolve_checkpoint_keyword(path), device="cpu")
+        return cls(model, size, num_anchors, sha, **options).prepare()
+
+    def prepare(self) -> Recognizer:
+        """Make the query networks ready, whatever the gallery: the onnxruntime path exported and its sessions
+        opened (``runtime=onnxruntime``), the compiled search and refinement kernels loaded (numba's cache).
+        Part of loading a model (:meth:`from_checkpoint`, :meth:`pretrained`), so that the first query after
+        :meth:`enrol` or :meth:`load` pays only for its gallery (docs/speed.md); otherwise done at that query."""
+        with self._lock:
+            want_runtime = (self.runtime == "onnxruntime" and self._runtime_path is None
+                            and self.runtime_fallback is None and self.device.type == "cpu")
+            if want_runtime or self.search is ExactSearch:  # a one-plane gallery of zeros: the networks' shapes
+                blank = build_gallery(torch.zeros(1, 3, self.image_size, self.image_size, dtype=torch.uint8), [0],
+                                      ["p"], ["o"], self.num_anchors).to(self.device)
+                probe = TensorRecognizer(self.model.feature_net, self.model.stn, blank, self.model.anchor_choice,
+                                         search=self.search, align=getattr(self.model, "align", None))
+                if want_runtime:
+                    self._runtime_path, self.runtime_fallback = runtime_path(probe)
+            if isinstance(self.refiner, FastRefiner) or (self._verifying() and self.verify_refine):
+                from matl.inference import fast_refine_kernels
+
+                fast_refine_kernels.warm_up()
+        return self
 
     @classmethod
     def pretrained(cls, name: str = "default", **options: Any) -> Recognizer:
@@ -370,31 +485,53 @@ class Recognizer:
         self._built = None
         self._calibrated = None
         self._verify_refiner = None
+        self._grey = None
 
     def enrol(self, folder: str | Path, cache: bool = True) -> Recognizer:
-        """Add every plane of a gallery folder ``<folder>/<object>/<plane>.{png,jpg}`` (features cached on disk)."""
+        """Add every plane of a gallery folder ``<folder>/<object>/<plane>.{png,jpg}`` (features cached on disk,
+        and with ``cache`` the open-set calibration too, beside them: :meth:`calibration_cache_file`). A file
+        whose shorter side is below :data:`MIN_GALLERY_SIDE` px, or that is empty (every pixel 0), is reported
+        and skipped."""
         with self._lock:
             enrolled = enrol_gallery(folder, self.model.feature_net, self.image_size, self.num_anchors,
                                      self.gallery_fill, self.model_id if cache else None)
             g, N = enrolled.gallery, self.num_anchors
             canon_u8 = enrolled.canon_u8
+            added = []
             for p, path in enumerate(enrolled.paths):
+                problem = _gallery_image_problem(tuple(int(v) for v in enrolled.file_sizes[p]), canon_u8[p])
+                if problem is not None:
+                    report_skipped(Path(path), problem)
+                    continue
                 obj = g.object_names[int(g.object_index[p * N])]
                 self._remove_plane(obj, g.plane_names[p])
-                self._planes.append(_Plane(obj, g.plane_names[p], canon_u8[p], enrolled.canon_H_file[p],
-                                           tuple(int(v) for v in enrolled.file_sizes[p]), str(path),
-                                           enrolled.features[p * N:(p + 1) * N]))
+                added.append(_Plane(obj, g.plane_names[p], canon_u8[p].clone(), enrolled.canon_H_file[p].clone(),
+                                    tuple(int(v) for v in enrolled.file_sizes[p]), str(path),
+                                    enrolled.features[p * N:(p + 1) * N].clone()))
+            if not added:
+                raise MatlError(f"gallery={folder} holds no usable image (all were skipped): expected "
+                                f"{folder}/<object>/<plane>.png of at least {MIN_GALLERY_SIDE} px a side")
+            self._planes.extend(added)
             self._changed()
+            folder_of_cache = enrolled.cache_file.parent if cache and enrolled.cache_file is not None else None
+            self._calibration_folder = None if folder_of_cache is None else (folder_of_cache, [id(p) for p in added])
         return self
 
     def add(self, object: str, plane: str, image: Any) -> Recognizer:
         """Enrol one canonical image (a path, an HxWx3/HxWx4 array or a (3|4, H, W) tensor) as ``object/plane``.
 
-        A plane of the same name replaces the old one.
+        ``object`` and ``plane`` are names (non-empty strings without ``/``, ``\\`` or ``..``: they stand for
+        the folder and file of a gallery folder); the image needs :data:`MIN_GALLERY_SIDE` px a side and a
+        non-zero pixel. A plane of the same name replaces the old one.
         """
-        rgb = _as_rgb(image, f"add({object!r}, {plane!r})")
+        _check_name(object, "object", f"add({object!r}, {plane!r}, ...)")
+        _check_name(plane, "plane", f"add({object!r}, {plane!r}, ...)")
+        rgb = _as_rgb(image, f"add({object!r}, {plane!r}, ...)")
         fitted, fit = fit_to_model(rgb, self.image_size, self.gallery_fill)
         canon_u8 = (fitted * 255.0).round().to(torch.uint8)
+        problem = _gallery_image_problem(rgb.shape[:2], canon_u8)
+        if problem is not None:
+            raise MatlError(f"add({object!r}, {plane!r}, ...): the gallery image {problem}")
         with self._lock:
             features = self._embed_anchors(canon_u8[None])
             self._remove_plane(object, plane)
@@ -416,35 +553,51 @@ class Recognizer:
         return self
 
     def save(self, path: str | Path) -> None:
-        """Write the enrolled gallery (images, features, calibration) to ``path`` (plain tensors)."""
-        from matl.utils.io import atomic_write
+        """Write the enrolled gallery to ``path`` (plain tensors, written atomically): each plane's canonical
+        image (uint8), its anchors' features and file geometry, and the open-set calibration (computed now if
+        ``threshold="auto"`` and not yet done, so that a process that :meth:`load` s the file answers its first
+        query without calibrating). Its size is linear in the planes: each tensor is saved on its own."""
+        from matl.utils.io import atomic_write, check_output_file
 
+        target = check_output_file(path, "save", overwrite=True, example="gallery.pt")
         with self._lock:
+            samples = self._calibration_samples() if self.threshold_option == "auto" and self._planes else None
+            planes = [{"object": p.object, "name": p.name, "canon_u8": p.canon_u8.clone(),
+                       "canon_H_file": p.canon_H_file.clone(), "file_size": list(p.file_size), "path": p.path,
+                       "features": p.features.clone()} for p in self._planes]  # clones: a view saves its whole base
             payload = {"format": GALLERY_FORMAT, "model_id": self.model_id, "image_size": self.image_size,
-                       "num_anchors": self.num_anchors, "gallery_fill": self.gallery_fill,
-                       "planes": [{k: v for k, v in dataclasses.asdict(p).items()} for p in self._planes]}
-            with atomic_write(path, "wb") as f:
+                       "num_anchors": self.num_anchors, "gallery_fill": self.gallery_fill, "planes": planes,
+                       "calibration": None if samples is None else {k: (v.clone() if isinstance(v, torch.Tensor) else v)
+                                                                    for k, v in samples.items()}}
+            with atomic_write(target, "wb") as f:
                 torch.save(payload, f)
 
     def load(self, path: str | Path) -> Recognizer:
-        """Replace the gallery by one written by :meth:`save` with the same model; refused otherwise."""
+        """Replace the gallery by one written by :meth:`save` with the same model; refused otherwise. Its
+        calibration is used while the gallery and the calibration options are the ones it was made with."""
         try:
             payload = torch.load(Path(path), map_location="cpu", weights_only=True)
         except FileNotFoundError:
             raise MatlError(f"{path}: no such gallery file") from None
-        except Exception as error:
-            raise MatlError(f"{path}: not a matl gallery file ({' '.join(str(error).split())[:200]})") from error
-        if not isinstance(payload, dict) or payload.get("format") != GALLERY_FORMAT:
-            raise MatlError(f"{path}: not a matl gallery file of format {GALLERY_FORMAT}")
+        except Exception:  # torch's own message would advise weights_only=False: never
+            raise MatlError(f"{path}: not a matl gallery file (torch cannot read it as plain tensors); pass a file "
+                            "written by Recognizer.save") from None
+        if not isinstance(payload, dict) or payload.get("format") not in READABLE_GALLERY_FORMATS:
+            raise MatlError(f"{path}: not a matl gallery file of format {GALLERY_FORMAT}; pass a file written by "
+                            "Recognizer.save")
         if payload.get("model_id") != self.model_id:
             raise MatlError(f"{path} was enrolled with another model ({str(payload.get('model_id'))[:12]}..., this one "
                             f"is {self.model_id[:12]}...): enrol the gallery again with this model")
         if payload.get("gallery_fill") != self.gallery_fill:
             raise MatlError(f"{path} was enrolled with gallery_fill={payload.get('gallery_fill')}, this recognizer "
                             f"uses {self.gallery_fill}")
+        fields = {f.name for f in dataclasses.fields(_Plane)}  # format 1 also kept each plane's calibration copies
         with self._lock:
-            self._planes = [_Plane(**{**p, "file_size": tuple(p["file_size"])}) for p in payload["planes"]]
+            self._planes = [_Plane(**{**{k: v for k, v in p.items() if k in fields},
+                                      "file_size": tuple(p["file_size"])}) for p in payload["planes"]]
             self._changed()
+            self._stored_calibration = payload.get("calibration") if isinstance(payload.get("calibration"), dict) \
+                else None
         return self
 
     # ----------------------------------------------------------------------------------- queries
@@ -535,9 +688,9 @@ class Recognizer:
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 
-    def _candidate_pose(self) -> CandidatePose:
-        """``verify_refine``'s poses of candidates: verified after the fast refinement against each (from
-        ``refiner.start``'s pose); an answer carries that pose with ``refine=`` set, else the networks' own."""
+    def _candidate_refiner(self) -> tuple[FastRefiner, Any]:
+        """The refiner of ``verify_refine``'s candidates and its per-anchor data, built when a candidate first needs
+        it (once per gallery): a query whose nearest anchor verifies never waits for it."""
         if self._verify_refiner is None:
             recognizer, gallery = self._build()
             refiner = self.refiner if isinstance(self.refiner, FastRefiner) else FastRefiner()
@@ -545,7 +698,11 @@ class Recognizer:
             if templates is None:
                 templates = refiner.anchor_templates(gallery.images)  # once per gallery
             self._verify_refiner = (refiner, templates)
-        refiner, templates = self._verify_refiner
+        return self._verify_refiner
+
+    def _candidate_pose(self) -> CandidatePose:
+        """``verify_refine``'s poses of candidates: verified after the fast refinement against each (from
+        ``refiner.start``'s pose); an answer carries that pose with ``refine=`` set, else the networks' own."""
         inner = self._gallery_recognizer()
 
         refined_answers = self.refiner is not None
@@ -553,6 +710,7 @@ class Recognizer:
 
         def pose(queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
+            refiner, templates = self._candidate_refiner()
             network = stn_H  # the pose the recognizer gives without refinement: s(), then the alignment stage
             if align is not None and (refiner.start == "align" or not refined_answers):
                 network = align.infer(queries, inner.gallery.images[index], stn_H, warped).query_H_anchor
@@ -605,10 +763,133 @@ class Recognizer:
 
     def _calibrate(self) -> tuple[float, torch.Tensor]:
         if self._calibrated is None:
-            samples = self.calibration()
+            samples = self._calibration_samples()
             threshold = calibrate_open_set(samples["genuine"], samples["impostor"], self.open_set_quantile)
             self._calibrated = (threshold, samples["impostor"].sort().values)
         return self._calibrated
+
+    # ------------------------------------------------------------------------- the calibration, kept
+    def calibration_key(self) -> str:
+        """What the open-set samples (:meth:`calibration`) depend on: the model, every plane's name and canonical
+        image, and the options that change the statistic (the statistic, the warps, verification and the
+        refiner that poses candidates, the query path). ``open_set_quantile`` is not in it: the threshold is
+        taken from the kept samples for any quantile."""
+        import hashlib
+        import json
+
+        digest = hashlib.sha256()
+        for plane in self._planes:
+            digest.update(f"{plane.object}\0{plane.name}\0".encode())
+            digest.update(plane.canon_u8.contiguous().numpy().tobytes())
+        refiner = None if self.refiner is None else {k: v for k, v in vars(self.refiner).items()
+                                                     if not k.startswith("_")}
+        options = {"format": CALIBRATION_FORMAT, "model": self.model_id, "image_size": self.image_size,
+                   "num_anchors": self.num_anchors, "statistic": self.open_set_statistic,
+                   "warps": self.calibration_warps, "homography": getattr(self.model, "homography_config", None),
+                   "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine]
+                              if self._verifying() else None),
+                   "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
+                   "search": self.options()["search"], "device": self.device.type, "variant": self._variant}
+        return json.dumps(options, sort_keys=True, default=str) + "|planes:" + digest.hexdigest()
+
+    def calibration_cache_file(self) -> Path | None:
+        """Where the calibration of a gallery enrolled from a folder (``enrol(folder, cache=True)``, nothing added
+        or removed since) is kept: ``<folder>/.matl_calibration_<model>_<options>.pt``, beside the features'
+        cache; None for any other gallery."""
+        import hashlib
+
+        if self._calibration_folder is None:
+            return None
+        folder, ids = self._calibration_folder
+        if [id(p) for p in self._planes] != ids:
+            return None
+        options = hashlib.sha256(self.calibration_key().rsplit("|planes:", 1)[0].encode()).hexdigest()
+        return folder / f"{CALIBRATION_PREFIX}{self.model_id[:16]}_{options[:16]}.pt"  # one per model and options
+
+    def _calibration_samples(self) -> dict[str, Any]:
+        """``{"key", "genuine", "impostor"}`` of the current gallery and options: the kept samples when their key
+        is this one (from :meth:`load` or the enrolled folder's cache), else :meth:`calibration`'s, kept (and
+        written beside an enrolled folder)."""
+        key = self.calibration_key()
+        stored = self._stored_calibration
+        if stored is None or stored.get("key") != key:
+            stored = self._read_calibration_cache(key)
+        if stored is None:
+            samples = self.calibration()
+            stored = {"key": key, "genuine": samples["genuine"], "impostor": samples["impostor"]}
+            self._write_calibration_cache(stored)
+        self._stored_calibration = stored
+        return stored
+
+    def _read_calibration_cache(self, key: str) -> dict[str, Any] | None:
+        path = self.calibration_cache_file()
+        if path is None or not path.is_file():
+            return None
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as error:  # a corrupt cache is never fatal: it is rebuilt
+            _log.warning("calibration cache %s is unreadable (%s); calibrating again", path,
+                         " ".join(str(error).split()))
+            return None
+        if (not isinstance(payload, dict) or payload.get("key") != key
+                or not all(isinstance(payload.get(k), torch.Tensor) for k in ("genuine", "impostor"))):
+            return None
+        _log.info("open-set calibration loaded from %s", path)
+        return payload
+
+    def _write_calibration_cache(self, samples: dict[str, Any]) -> None:
+        from matl.utils.io import atomic_write
+
+        path = self.calibration_cache_file()
+        if path is None:
+            return
+        try:
+            with atomic_write(path, "wb") as f:
+                torch.save(samples, f)
+        except OSError as error:  # a read-only gallery folder only costs a warning
+            _log.warning("cannot write the calibration cache %s (%s); it will be recomputed next time", path, error)
+
+    # ----------------------------------------------------------------------------- grey queries
+    def _grey_twin(self) -> Recognizer:
+        """This recognizer over the grey (luma) twins of its planes, for grey queries: a grey crop is compared
+        with what its product looks like in grey, not with colours it cannot show. Built at the first grey
+        query (its anchors' features, once) and calibrated as this one; self when every plane is grey."""
+        if self._variant == "grey":
+            return self
+        if self._grey is None:
+            if all(bool((p.canon_u8[0] == p.canon_u8[1]).all() and (p.canon_u8[1] == p.canon_u8[2]).all())
+                   for p in self._planes):
+                return self
+            twin = copy.copy(self)
+            grey = torch.stack([_grey_u8(p.canon_u8) for p in self._planes])
+            features = self._embed_anchors(grey).split(self.num_anchors)
+            twin._planes = [dataclasses.replace(p, canon_u8=g, features=f.clone(), calibration=None)
+                            for p, g, f in zip(self._planes, grey, features, strict=True)]
+            twin._variant, twin._grey = "grey", None
+            twin._built = twin._calibrated = twin._verify_refiner = twin._stored_calibration = None
+            same_folder = self.calibration_cache_file() is not None
+            twin._calibration_folder = ((self._calibration_folder[0], [id(p) for p in twin._planes])
+                                        if same_folder else None)
+            self._grey = twin
+        return self._grey
+
+    def _predict_routed(self, arrays: list[np.ndarray], top_k: int = 1
+                        ) -> tuple[list[Match], Prediction, torch.Tensor]:
+        """:meth:`_predict_arrays`, grey queries (equal colour channels) answered by :meth:`_grey_twin`; the
+        answers in the given order (the twin's planes, anchors and objects are this gallery's, in its order)."""
+        grey = [i for i, a in enumerate(arrays) if _is_grey(a)]
+        twin = self._grey_twin() if grey and self._planes else self
+        if twin is self:
+            return self._predict_arrays(arrays, top_k)
+        if len(grey) == len(arrays):
+            return twin._predict_arrays(arrays, top_k)
+        colour = [i for i in range(len(arrays)) if i not in set(grey)]
+        first = self._predict_arrays([arrays[i] for i in colour], top_k)
+        second = twin._predict_arrays([arrays[i] for i in grey], top_k)
+        order = torch.argsort(torch.tensor(colour + grey))  # row i of the result: row order[i] of the concatenation
+        matches = [*first[0], *second[0]]
+        return ([matches[int(i)] for i in order], _rows(_concat(first[1], second[1]), order),
+                _rows(_concat(first[2], second[2]), order))
 
     def _score(self, statistic: float) -> float:
         if self.threshold_option is None or not self._planes:
@@ -674,14 +955,16 @@ class Recognizer:
         plus the model-frame prediction and the model-size query images it came from (for pictures and
         diagnostics)."""
         with self._lock:
-            return self._predict_arrays(arrays)
+            return self._predict_routed(arrays)
 
     def predict(self, images: Any, top_k: int = 1) -> Match | list[Match]:
         """Recognise one image or a batch; see :class:`Match`.
 
         Args:
-            images: a path, an ``HxWx3`` uint8 RGB / ``HxWx4`` RGBA array (any size), a ``(3|4, H, W)``
-                tensor, a list of those, or a ``(B, 3, H, W)`` tensor.
+            images: a path, an ``HxWx3`` RGB / ``HxWx4`` RGBA / ``HxW`` grey array (any size; uint8 0-255 or
+                float 0-1), a ``(3|4, H, W)`` or ``(H, W)`` tensor, a list of those, or a ``(B, 3, H, W)`` tensor.
+                A grey image (equal colour channels) is matched against the grey twins of the enrolled
+                planes. Float pixels outside [0, 1], NaN or infinite are a one-line error.
             top_k: also return the ``top_k - 1`` next-nearest other planes in ``Match.alternatives``.
         Returns:
             One :class:`Match` for a single image, else a list in the given order.
@@ -695,7 +978,7 @@ class Recognizer:
             for start in range(0, len(items), self.batch_size):
                 chunk = [_as_rgb(x, f"image {start + i}", keep_alpha=True)
                          for i, x in enumerate(items[start:start + self.batch_size])]
-                matches.extend(self._predict_arrays(chunk, top_k)[0])
+                matches.extend(self._predict_routed(chunk, top_k)[0])
         return matches[0] if single else matches
 
     def _predict_arrays(self, arrays: list[np.ndarray], top_k: int = 1

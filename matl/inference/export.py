@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,11 @@ SUFFIXES = {"torchscript": ".pt", "export": ".pt2", "onnx": ".onnx"}
 #: output names of the two networks, in order (the ONNX graphs' names too)
 GALLERY_OUTPUTS = ("embedding",)
 QUERY_OUTPUTS = ("embedding", "query_H_anchor", "degenerate", "warped")
+#: the alignment stage's network (a checkpoint with ``model.align``): its inputs, in order, and its output
+ALIGN_INPUTS = ("images", "anchors", "stn_query_H_anchor", "warped")
+ALIGN_OUTPUTS = ("query_H_anchor",)
+#: what an export writes into ``out`` (glob patterns: an earlier export's files are replaced only when asked)
+EXPORT_FILES = ("export.json", "gallery_net.*", "query_net.*", "align_net.*")
 #: 16 is the first opset with GridSample (the STN's warp); 17 is read by every onnxruntime >= 1.12
 ONNX_OPSET = 17
 ONNX_INSTALL = 'pip install "onnx>=1.15" "onnxruntime>=1.17" (dependencies of matl)'
@@ -129,7 +135,9 @@ class OnnxNetwork:
     """An exported ``.onnx`` network in onnxruntime (CPUExecutionProvider), called like the torch module.
 
     ``network(images (B, 3, S, S) float32 tensor)`` returns the outputs as CPU tensors: the tuple of
-    ``output_names`` (the query network), or the one tensor of a single-output network (the gallery's).
+    ``output_names`` (the query network), or the one tensor of a single-output network (the gallery's,
+    the alignment stage's). A network of several inputs (the alignment stage's, :data:`ALIGN_INPUTS`)
+    takes them in order.
 
     Args:
         path: the ``.onnx`` file, or its bytes.
@@ -143,16 +151,19 @@ class OnnxNetwork:
             options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
         model = path if isinstance(path, bytes) else str(path)
         self.session = ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
-        self.input_name = self.session.get_inputs()[0].name
+        self.input_names = tuple(i.name for i in self.session.get_inputs())
+        self.input_name = self.input_names[0]
         self.output_names = tuple(o.name for o in self.session.get_outputs())
 
-    def __call__(self, images: torch.Tensor) -> tuple[torch.Tensor, ...] | torch.Tensor:
-        feed = {self.input_name: images.detach().to("cpu", torch.float32).contiguous().numpy()}
+    def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...] | torch.Tensor:
+        feed = {name: x.detach().to("cpu", torch.float32).contiguous().numpy()
+                for name, x in zip(self.input_names, inputs, strict=True)}
         outputs = tuple(torch.from_numpy(o) for o in self.session.run(None, feed))
         return outputs if len(outputs) > 1 else outputs[0]
 
 
-def _export_onnx(module: nn.Module, example: torch.Tensor, path: Path, outputs: tuple[str, ...]) -> OnnxNetwork:
+def _export_onnx(module: nn.Module, example: torch.Tensor | tuple[torch.Tensor, ...], path: Path,
+                 outputs: tuple[str, ...], inputs: tuple[str, ...] = ("images",)) -> OnnxNetwork:
     """Write ``module`` as ONNX with a dynamic batch axis; returns it loaded in onnxruntime.
 
     The TorchScript-based exporter (``dynamo=False``): with torch 2.13 it records the same graph as
@@ -162,43 +173,92 @@ def _export_onnx(module: nn.Module, example: torch.Tensor, path: Path, outputs: 
     the one argument and ``dynamic_shapes`` for ``dynamic_axes``.
     """
     require_onnxruntime()
-    path.write_bytes(onnx_bytes(module, example, outputs))
+    path.write_bytes(onnx_bytes(module, example, outputs, inputs))
     return OnnxNetwork(path)
 
 
-def onnx_bytes(module: nn.Module, example: torch.Tensor, outputs: tuple[str, ...]) -> bytes:
-    """``module`` as a serialised ONNX model (input ``images``, ``outputs`` named, a dynamic batch axis).
+def onnx_bytes(module: nn.Module, example: torch.Tensor | tuple[torch.Tensor, ...], outputs: tuple[str, ...],
+               inputs: tuple[str, ...] = ("images",)) -> bytes:
+    """``module`` as a serialised ONNX model (``inputs`` and ``outputs`` named, a dynamic batch axis on each).
 
     The TorchScript-based exporter (see :func:`_export_onnx`), ``torch.linalg.svdvals`` recorded as
     :func:`svdvals_3x3`. Needs the ``onnx`` package."""
     import io
 
-    axes = {name: {0: "batch"} for name in ("images", *outputs)}
+    examples = example if isinstance(example, tuple) else (example,)
+    axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
     buffer = io.BytesIO()
     with warnings.catch_warnings(), _OnnxTraceable():
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         warnings.filterwarnings("ignore", message=".*Converting a tensor to a Python.*")
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
-        torch.onnx.export(module, (example,), buffer, dynamo=False, input_names=["images"],
+        torch.onnx.export(module, examples, buffer, dynamo=False, input_names=list(inputs),
                           output_names=list(outputs), dynamic_axes=axes, opset_version=ONNX_OPSET)
     return buffer.getvalue()
 
 
+class AlignGraph(nn.Module):
+    """The alignment stage (:class:`matl.models.align.AlignmentStage`) as plain torch ops with no
+    batch-size constant and no Python branch on the values, so that it traces into TorchScript,
+    ``torch.export`` and ONNX graphs with a dynamic batch axis; equal to ``stage.infer`` up to float rounding
+    (checked on every export).
+
+    ``forward(images (B, 3, S, S), anchors (B, 3, S, S), stn_query_H_anchor (B, 3, 3) pixel, warped
+    (B, 3, S, S)) -> query_H_anchor (B, 3, 3) pixel``: ``images`` the model-frame queries, ``anchors`` the
+    gallery anchor the search found for each, ``stn_query_H_anchor`` and ``warped`` the query network's
+    outputs. A query whose residuals are all the identity keeps ``stn_query_H_anchor`` bit for bit.
+    """
+
+    def __init__(self, stage: nn.Module, image_size: int | None = None) -> None:
+        super().__init__()
+        from matl.geometry import normalisation_matrices, normalised_grid
+
+        self.regressor = stage.regressor
+        self.iterations, self.max_condition = int(stage.iterations), float(stage.max_condition)
+        self.size = int(image_size if image_size is not None else stage.image_size)
+        self.register_buffer("grid", normalised_grid(self.size, self.size).clone(), persistent=False)
+        pixel_H_norm, norm_H_pixel = normalisation_matrices((self.size, self.size))
+        self.register_buffer("pixel_H_norm", pixel_H_norm.clone(), persistent=False)  # (1, 3, 3)
+        self.register_buffer("norm_H_pixel", norm_H_pixel.clone(), persistent=False)  # (1, 3, 3)
+        self.register_buffer("eye", torch.eye(3), persistent=False)
+
+    def forward(self, images: torch.Tensor, anchors: torch.Tensor, stn_query_H_anchor: torch.Tensor,
+                warped: torch.Tensor) -> torch.Tensor:
+        from matl.geometry import guard_homographies, normalised_to_pixel, sample_by_normalised, scale_to_unit
+        from matl.models.align import square_to_quad
+
+        start = stn_query_H_anchor.to(images.dtype)
+        H = scale_to_unit(self.norm_H_pixel @ start @ self.pixel_H_norm)  # pixel -> normalised
+        residual = self.eye.expand_as(H)
+        current = warped
+        for step in range(self.iterations):
+            R, _ = guard_homographies(square_to_quad(self.regressor(current, anchors)), self.max_condition, self.eye)
+            H, residual = H @ R, residual @ R
+            if step + 1 < self.iterations:
+                current = sample_by_normalised(images, H, self.grid)
+        pixel = normalised_to_pixel(H, (self.size, self.size), (self.pixel_H_norm, self.norm_H_pixel))
+        unchanged = (residual == self.eye).flatten(1).all(dim=1)
+        return torch.where(unchanged[:, None, None], start, pixel)
+
+
 # ---------------------------------------------------------------------------------------- export
-def _trace(module: nn.Module, example: torch.Tensor, fmt: str, path: Path, outputs: tuple[str, ...]) -> Any:
+def _trace(module: nn.Module, example: torch.Tensor | tuple[torch.Tensor, ...], fmt: str, path: Path,
+           outputs: tuple[str, ...], inputs: tuple[str, ...] = ("images",)) -> Any:
     """Export ``module`` in ``fmt`` to ``path``; returns the loaded exported module (callable)."""
     module.eval()
+    examples = example if isinstance(example, tuple) else (example,)
     if fmt == "onnx":
-        return _export_onnx(module, example, path, outputs)
+        return _export_onnx(module, examples, path, outputs, inputs)
     if fmt == "torchscript":
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*torch.jit.trace.*deprecated")
             warnings.filterwarnings("ignore", message=".*Converting a tensor to a Python.*")
-            traced = torch.jit.trace(module, example, check_trace=False)
+            warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)  # constants (corners, matrices)
+            traced = torch.jit.trace(module, examples, check_trace=False)
         torch.jit.save(traced, str(path))
         return torch.jit.load(str(path))
     batch = torch.export.Dim("batch", min=1, max=4096)
-    program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
+    program = torch.export.export(module, examples, dynamic_shapes=tuple({0: batch} for _ in examples))
     with warnings.catch_warnings():  # torch's own archive code warns about CPU weights it handles fine
         warnings.filterwarnings("ignore", message=".*No complete tensor found")
         torch.export.save(program, str(path))
@@ -228,9 +288,10 @@ def _fixed_anchor_matrices(num_anchors: int, image_size: int) -> list[list[list[
 
 
 def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pose: bool,
-                     max_condition: float | None = None) -> dict[str, Any]:
+                     max_condition: float | None = None, has_align: bool = False) -> dict[str, Any]:
     """What ``export.json`` tells a user of the exported files alone (C++, ROS): how to load them, what
-    goes in, what comes out, and how recognition, pose and original-image pixels follow."""
+    goes in, what comes out, and how recognition, pose and original-image pixels follow (``has_align``:
+    the checkpoint's alignment stage is ``align_net``, between the search and the pose)."""
     S = int(image_size)
     notes: dict[str, Any] = {
         "inputs": f"float32 (B, 3, S, S) RGB in [0, 1] (row-major, channels first), S = image_size = {S}; "
@@ -264,6 +325,15 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
                               "warped (B, 3, S, S) (the query in its anchor's frame)")
         notes["pose"] = ("query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor k (in float64, "
                          "then divided by its [2, 2]): maps canonical model pixels to query model pixels")
+        if has_align:
+            notes["align_net"] = ("(images (B, 3, S, S), anchors (B, 3, S, S), stn_query_H_anchor (B, 3, 3), warped "
+                                  "(B, 3, S, S)) -> query_H_anchor (B, 3, 3): the checkpoint's alignment stage; after "
+                                  "the search, feed the query, the image of the nearest gallery anchor, and the "
+                                  "query_net's query_H_anchor and warped; its query_H_anchor replaces the query_net's "
+                                  "in the pose (without it the pose is the STN's alone, several times less accurate)")
+            notes["pose"] = ("query_H_canon = query_H_anchor @ anchor_k_H_canon of the nearest anchor k, "
+                             "query_H_anchor being align_net's (in float64, then divided by its [2, 2]): maps "
+                             "canonical model pixels to query model pixels")
         limit = f"{max_condition:g}" if max_condition is not None else "max_condition"
         notes["degenerate"] = (f"true: the STN's homography was unusable (non-finite, or a condition number >= {limit} "
                                "in normalised coordinates) and was replaced by the identity; the pose is then not an "
@@ -275,9 +345,12 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
         notes["query_net"] = "(B, 3, S, S) -> embedding (B, D) (no STN: no pose)"
     if fmt == "onnx":
         notes["runtime"] = (f"ONNX opset {ONNX_OPSET}, input 'images', outputs "
-                            f"{list(QUERY_OUTPUTS if has_pose else GALLERY_OUTPUTS)} (gallery_net: ['embedding']), "
-                            "batch axis dynamic; onnxruntime (C++: Ort::Session) with the CPUExecutionProvider is "
-                            "what the export is checked with")
+                            f"{list(QUERY_OUTPUTS if has_pose else GALLERY_OUTPUTS)} (gallery_net: ['embedding']"
+                            + (f"; align_net: inputs {list(ALIGN_INPUTS)}, output {list(ALIGN_OUTPUTS)}" if has_align
+                               else "")
+                            + "), batch axis dynamic; onnxruntime (C++: Ort::Session) with the CPUExecutionProvider "
+                            "is what the export is checked with; scripts/onnx_predict_example.py is the whole query "
+                            "path with numpy, OpenCV and onnxruntime alone")
     return notes
 
 
@@ -285,8 +358,12 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
 def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: int, out_dir: str | Path,
                      fmt: str = "torchscript", tolerance: float = 1e-4, check_batches: tuple[int, ...] = (1, 3),
                      meta: dict[str, Any] | None = None, seed: int = 0,
-                     num_anchors: int | None = None) -> dict[str, Any]:
-    """Export the gallery and query networks, check them against the eager ones, write ``export.json``.
+                     num_anchors: int | None = None, align: nn.Module | None = None) -> dict[str, Any]:
+    """Export the gallery and query networks (and the alignment stage), check them against the eager ones,
+    write ``export.json``.
+
+    The files are written to a temporary folder inside ``out_dir`` and moved into it only once every check
+    has passed: a failed export leaves ``out_dir`` as it was.
 
     Args:
         feature_net: ``c()`` (eval mode is set here).
@@ -302,12 +379,17 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
             batch size baked into the export would be caught.
         meta: extra fields for ``export.json`` (N, checkpoint, ...).
         num_anchors: ``N`` of the fixed anchors, for their matrices in ``export.json`` (None: left out).
+        align: the checkpoint's alignment stage (``model.align``) or None: exported as ``align_net``
+            (:class:`AlignGraph`), run after the search on the query network's pose against the anchor found.
     Returns:
         ``export.json``'s content; ``max_abs_diff`` per network, ``max_abs_diff_by_output`` per output.
     Raises:
         MatlError: unknown format, ``onnx`` without onnxruntime, or an output that differs by more than
             ``tolerance``.
     """
+    import shutil
+    import tempfile
+
     if fmt not in FORMATS:
         raise MatlError(f"format={fmt} is invalid: use {' or '.join(FORMATS)}")
     if fmt == "onnx":
@@ -316,15 +398,41 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".matl_export.", dir=out))
+    try:
+        info = _export_checked(feature_net, stn, align if stn is not None else None, image_size, staging, fmt,
+                               tolerance, check_batches, seed, QueryGraph)
+        info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None,
+                                     getattr(stn, "max_condition", None), "align_net" in info["files"]))
+        info.update(meta or {})
+        write_json(staging / "export.json", info)
+        for name in [*info["files"].values(), "export.json"]:  # each a rename within out: complete files only
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return info
+
+
+def _export_checked(feature_net: nn.Module, stn: nn.Module | None, align: nn.Module | None, image_size: int,
+                    folder: Path, fmt: str, tolerance: float, check_batches: tuple[int, ...], seed: int,
+                    query_graph: type[nn.Module]) -> dict[str, Any]:
+    """:func:`export_inference`'s networks, written into ``folder`` and checked; ``export.json``'s measured part."""
     feature_net = feature_net.eval().cpu()
-    query_net: nn.Module = QueryGraph(stn.eval().cpu(), feature_net) if stn is not None else feature_net
+    query_net: nn.Module = query_graph(stn.eval().cpu(), feature_net) if stn is not None else feature_net
     query_outputs = QUERY_OUTPUTS if stn is not None else GALLERY_OUTPUTS
     g = torch.Generator().manual_seed(seed)
     example = torch.rand(2, 3, image_size, image_size, generator=g)
 
-    files = {"gallery_net": out / f"gallery_net{SUFFIXES[fmt]}", "query_net": out / f"query_net{SUFFIXES[fmt]}"}
-    gallery_exported = _trace(feature_net, example, fmt, files["gallery_net"], GALLERY_OUTPUTS)
-    query_exported = _trace(query_net, example, fmt, files["query_net"], query_outputs)
+    files = {"gallery_net": folder / f"gallery_net{SUFFIXES[fmt]}", "query_net": folder / f"query_net{SUFFIXES[fmt]}"}
+    exported = {"gallery_net": _trace(feature_net, example, fmt, files["gallery_net"], GALLERY_OUTPUTS),
+                "query_net": _trace(query_net, example, fmt, files["query_net"], query_outputs)}
+    if align is not None:
+        align = align.eval().cpu()
+        files["align_net"] = folder / f"align_net{SUFFIXES[fmt]}"
+        stn_out = stn(example)
+        exported["align_net"] = _trace(AlignGraph(align, image_size), (example, example.flip(0), stn_out.query_H_anchor,
+                                                                     stn_out.warped),
+                                       fmt, files["align_net"], ALIGN_OUTPUTS, ALIGN_INPUTS)
 
     def eager_query(x: torch.Tensor) -> tuple[torch.Tensor, ...] | torch.Tensor:
         if stn is None:
@@ -333,11 +441,20 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
         return feature_net(result.warped), result.query_H_anchor, result.degenerate, result.warped
 
     by_output = {"gallery_net": dict.fromkeys(GALLERY_OUTPUTS, 0.0), "query_net": dict.fromkeys(query_outputs, 0.0)}
+    if align is not None:
+        by_output["align_net"] = dict.fromkeys(ALIGN_OUTPUTS, 0.0)
     for batch in check_batches:
         images = torch.rand(batch, 3, image_size, image_size, generator=g)
         for x in (images, (images * 1.5).clamp(0, 1)):
-            for name, diffs in (("gallery_net", _max_diffs(feature_net(x), gallery_exported(x), GALLERY_OUTPUTS)),
-                                ("query_net", _max_diffs(eager_query(x), query_exported(x), query_outputs))):
+            checks = [("gallery_net", _max_diffs(feature_net(x), exported["gallery_net"](x), GALLERY_OUTPUTS)),
+                      ("query_net", _max_diffs(eager_query(x), exported["query_net"](x), query_outputs))]
+            if align is not None:  # against other images as anchors, from s()'s own pose
+                anchors = torch.rand(batch, 3, image_size, image_size, generator=g)
+                result = stn(x)
+                args = (x, anchors, result.query_H_anchor, result.warped)
+                checks.append(("align_net", _max_diffs(align.infer(*args).query_H_anchor,
+                                                       exported["align_net"](*args), ALIGN_OUTPUTS)))
+            for name, diffs in checks:
                 for output, diff in diffs.items():
                     by_output[name][output] = max(by_output[name][output], diff)
     for name, diffs in by_output.items():
@@ -356,34 +473,34 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
     if fmt == "onnx":
         info["onnxruntime"] = require_onnxruntime().__version__
         info["checked_with"] = "onnxruntime CPUExecutionProvider"
-    info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None,
-                                 getattr(stn, "max_condition", None)))
-    info.update(meta or {})
-    write_json(out / "export.json", info)
     return info
 
 
 def export(cfg: DictConfig) -> dict[str, Any]:
-    """``matl.export``'s work for a composed ``conf/export.yaml``."""
+    """``matl.export``'s work for a composed ``conf/export.yaml``: ``ckpt=`` (a path, ``pretrained`` or
+    ``pretrained_fast``), ``format`` and ``out`` checked before anything is traced."""
+    from matl.models.checkpoint import CKPT_FIX, load_embedding_model, resolve_ckpt_option
+    from matl.utils.io import check_output_folder, overwrite_option
+
     if cfg.get("ckpt") in (None, ""):
-        raise MatlError("ckpt=... is required: python -m matl.export ckpt=<path> out=<dir>")
-    if not Path(str(cfg.ckpt)).expanduser().is_file():  # before the heavy imports: a typo costs a second
-        raise MatlError(f"checkpoint {cfg.ckpt} not found")
+        raise MatlError("ckpt=... is required: python -m matl.export ckpt=<path>|pretrained|pretrained_fast out=<dir>")
+    resolve_ckpt_option(cfg)
+    if not Path(str(cfg.ckpt)).expanduser().is_file():  # before any work: a typo costs a second
+        raise MatlError(f"checkpoint {cfg.ckpt} not found: {CKPT_FIX}")
     if str(cfg.format) not in FORMATS:
         raise MatlError(f"format={cfg.format} is invalid: use {' or '.join(FORMATS)}")
     if str(cfg.format) == "onnx":
         require_onnxruntime()
-    from matl.models.checkpoint import load_embedding_model
+    check_output_folder(cfg.out, EXPORT_FILES, "out", overwrite_option(cfg))
     model, size, num_anchors, sha = load_embedding_model(cfg.ckpt)
     stn = getattr(model, "stn", None)
+    align = getattr(model, "align", None) if stn is not None else None
     meta = {"N": num_anchors, "checkpoint": str(cfg.ckpt), "checkpoint_sha256": sha,
             "fixed_anchors": "anchor k = canonical image rotated by k * 360 / N degrees about the centre"}
-    if getattr(model, "align", None) is not None:  # the stage needs the searched anchor: not part of these graphs
-        meta["alignment_stage"] = ("not exported: query_H_anchor is s()'s pose, before the checkpoint's alignment "
-                                   "stage (matl.predict and matl.Recognizer run it)")
-        log.warning("export: the checkpoint's alignment stage is not in the exported files; their query_H_anchor "
-                    "is s()'s pose before it")
+    if align is not None:
+        meta["alignment_stage"] = ("exported as align_net: run it after the search on the query network's "
+                                   "query_H_anchor against the anchor found; its query_H_anchor is the pose")
     info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta,
-                            num_anchors=num_anchors)
+                            num_anchors=num_anchors, align=align)
     log.info("export: %s", json.dumps(info))
     return info

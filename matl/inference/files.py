@@ -6,6 +6,7 @@ The library side of ``python -m matl.predict`` (the command, its options and out
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from collections.abc import Callable, Iterator, Sequence
@@ -217,35 +218,45 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
     ``baseline_name`` names the baseline whose node ``cfg.baseline`` is, for a config built in Python (e.g. by
     :mod:`matl.evaluation.unseen_methods`); None: the command line's ``baseline=`` choice.
 
+    Every option, the model, the query files and the outputs (``out``, ``viz_dir``: writable, and an
+    existing file replaced only with ``overwrite=true``) are checked before the gallery is enrolled.
+    ``out`` is written to a temporary file beside it and renamed over it when every query is answered
+    (:func:`matl.utils.io.atomic_write`): an interrupted run leaves an earlier ``out`` as it was.
+
     Raises:
         MatlError: a bad option, no usable gallery, or no readable query image at all (then nothing
             is written; with some readable images the others are reported and the run succeeds).
     """
+    from omegaconf import open_dict
+
+    from matl.models import checkpoint
+    from matl.utils.io import atomic_write, check_output_file, check_output_folder, overwrite_option
+
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
     quantize_option(cfg)  # quantize=none|int8
     runtime_option(cfg)  # runtime=torch|onnxruntime
     _threshold(cfg)
+    overwrite = overwrite_option(cfg)
     for key in ("gallery", "images", "out"):
         if cfg.get(key) in (None, ""):
             raise MatlError(f"{key}=... is required: python -m matl.predict gallery=<dir> images=<dir or file> "
                             "out=<file.jsonl> [ckpt=<path>]")
+    out = check_output_file(cfg.out, "out", overwrite)  # before any work: nothing of the user's is replaced
+    viz_dir = check_output_folder(cfg.viz_dir, ["*.png"], "viz_dir", overwrite) if cfg.viz else None
+    if not Path(str(cfg.gallery)).expanduser().is_dir():
+        raise MatlError(f"gallery={cfg.gallery}: no such folder")
+    files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
+    if not files:
+        raise MatlError(f"images={cfg.images} holds no files")
     if cfg.get("ckpt") in (None, ""):  # the model shipped in the package
-        from omegaconf import open_dict
-
-        from matl.inference.api import PRETRAINED
-
-        if not PRETRAINED.is_file():
-            raise MatlError(f"ckpt=... is required: no pretrained model ships with this install ({PRETRAINED} is "
-                            "missing); train one (python -m matl.train) and pass its checkpoints/best.ckpt")
+        if not checkpoint.PRETRAINED.is_file():
+            raise MatlError(f"ckpt=... is required: no pretrained model ships with this install "
+                            f"({checkpoint.PRETRAINED} is missing); train one (python -m matl.train) and pass its "
+                            "checkpoints/best.ckpt")
         with open_dict(cfg):
-            cfg.ckpt = str(PRETRAINED)
+            cfg.ckpt = str(checkpoint.PRETRAINED)
     else:  # ckpt=pretrained / pretrained_fast: a shipped model by name
-        from omegaconf import open_dict
-
-        from matl.inference.api import resolve_checkpoint_keyword
-
-        with open_dict(cfg):
-            cfg.ckpt = resolve_checkpoint_keyword(cfg.ckpt)
+        checkpoint.resolve_ckpt_option(cfg)
     baseline = None
     if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
         from matl.inference.baseline_files import baseline_recognizer_from_config
@@ -255,33 +266,23 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
         recognizer: Any = baseline_recognizer_from_config(cfg, baseline)
     else:
         recognizer = recognizer_from_config(cfg)
-    files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
-    if not files:
-        raise MatlError(f"images={cfg.images} holds no files")
     recognizer.enrol(cfg.gallery, cache=bool(cfg.cache))
-    out = Path(cfg.out).expanduser()
-    viz_dir = Path(cfg.viz_dir) if cfg.viz else None
-    handle = None
     unknown = 0
+    with contextlib.ExitStack() as stack:
+        handle = None
 
-    def sink(record: dict[str, Any]) -> None:
-        nonlocal handle, unknown
-        unknown += not record["known"]
-        if handle is None:  # opened on the first answer: a run with no readable image writes no file
-            out.parent.mkdir(parents=True, exist_ok=True)
-            handle = open(out, "w")  # noqa: SIM115 - closed below, kept open across batches
-        handle.write(json.dumps(record) + "\n")
-        handle.flush()  # partial results survive an interrupted run over a large folder
+        def sink(record: dict[str, Any]) -> None:
+            nonlocal handle, unknown
+            unknown += not record["known"]
+            if handle is None:  # opened on the first answer: a run with no readable image writes no file
+                handle = stack.enter_context(atomic_write(out))
+            handle.write(json.dumps(record) + "\n")
 
-    try:
         done, bad = predict_files(recognizer, files, sink, viz_dir)
-    finally:
-        if handle is not None:
-            handle.close()
-    if done == 0:
-        names = ", ".join(str(p) for p in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
-        raise MatlError(f"images={cfg.images}: no readable image among {len(bad)} file(s) ({names}); "
-                        f"nothing was written to {out}")
+        if done == 0:
+            names = ", ".join(str(p) for p in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+            raise MatlError(f"images={cfg.images}: no readable image among {len(bad)} file(s) ({names}); "
+                            f"nothing was written to {out}")
     gallery = recognizer.gallery
     summary = {"predicted": done, "skipped": len(bad), "skipped_files": [str(p) for p in bad], "out": str(out),
                "image_size": recognizer.image_size, "N": recognizer.num_anchors,

@@ -4,6 +4,12 @@ and writing them atomically during training (:class:`AtomicModelCheckpoint`).
 Checkpoints are read with ``torch.load(weights_only=True)``: they hold plain containers only
 (``state_dict``, ``matl_config`` = the run's resolved config as a dict, ``matl_image_size``,
 ``matl_num_anchors``, and for classifiers ``matl_class_names``), so nothing is unpickled.
+
+``ckpt=`` of every command (predict, unseen, bench, export, score, eval) and ``Recognizer.pretrained``
+name a checkpoint the same way, through :func:`resolve_checkpoint_keyword`: ``pretrained`` and
+``pretrained_fast`` are the models shipped inside the package (:data:`SHIPPED`), anything else a path.
+A file that is not a matl checkpoint is one line naming the file and the fix, never torch's own advice
+(which suggests ``weights_only=False``, i.e. running the file's code).
 """
 
 from __future__ import annotations
@@ -11,9 +17,9 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import pickle
 import random as _py_random
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any
 from weakref import proxy
@@ -36,26 +42,100 @@ def _is_global_zero() -> bool:
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
 
 
+# ------------------------------------------------------------------------------ naming checkpoints
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+#: the shipped default model (experiment=pretrained: matl_camera with the alignment stage)
+PRETRAINED = WEIGHTS_DIR / "matl_default.ckpt"
+#: the shipped fast model (experiment=pretrained_fast: a cheaper s(), no alignment stage; meant for refine=True)
+PRETRAINED_FAST = WEIGHTS_DIR / "matl_fast.ckpt"
+#: the ``ckpt=`` keywords of the command line that name the shipped models -> ``Recognizer.pretrained``'s names
+SHIPPED = {"pretrained": "default", "pretrained_fast": "fast"}
+#: what every checkpoint error suggests
+CKPT_FIX = ("pass a checkpoint written by python -m matl.train (<run>/checkpoints/best.ckpt), ckpt=pretrained or "
+            "ckpt=pretrained_fast")
+
+
+def shipped_checkpoint(name: str = "default") -> Path:
+    """The path of a model shipped inside the package, ``default`` or ``fast``; a one-line error when this install
+    lacks it."""
+    paths = {"default": PRETRAINED, "fast": PRETRAINED_FAST}
+    if name not in paths:
+        raise MatlError(f"no shipped model is called {name!r}: use one of {', '.join(paths)}")
+    if not paths[name].is_file():
+        raise MatlError(f"no pretrained model ships with this version of matl ({paths[name]} is missing): "
+                        "train one with python -m matl.train and use "
+                        "Recognizer.from_checkpoint(<run>/checkpoints/best.ckpt)")
+    return paths[name]
+
+
+def resolve_checkpoint_keyword(ckpt: Any) -> Any:
+    """``pretrained`` / ``pretrained_fast`` -> the shipped model's path (a string); any other value as it is.
+
+    The one resolver of ``ckpt=``: every command that takes a checkpoint calls it (directly or through
+    :func:`resolve_ckpt_option`) before it reads the file."""
+    return str(shipped_checkpoint(SHIPPED[ckpt])) if isinstance(ckpt, str) and ckpt in SHIPPED else ckpt
+
+
+def resolve_ckpt_option(cfg: Any, key: str = "ckpt") -> Any:
+    """A command's ``cfg.<key>`` with a shipped model's keyword replaced by its path, in place; returns the value
+    (None or empty left as they are: the command decides what a missing checkpoint means)."""
+    from omegaconf import open_dict
+
+    value = cfg.get(key)
+    resolved = resolve_checkpoint_keyword(str(value)) if value not in (None, "") else value
+    if resolved != value:
+        with open_dict(cfg):
+            cfg[key] = resolved
+    return resolved
+
+
+def _read_failure(path: Path, error: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in our words (torch's own message advises
+    ``weights_only=False``, which would run whatever code the file holds)."""
+    text = " ".join(str(error).split())
+    if "TorchScript" in text:
+        return "a TorchScript file (matl.export's output is for deployment, not a training checkpoint)"
+    if "Unsupported global" in text or "not an allowed global" in text:
+        return "it holds pickled Python objects beyond tensors and plain containers, which are never unpickled"
+    with open(path, "rb") as f:
+        zipped = f.read(4) == b"PK\x03\x04"  # torch.save's archive
+    if isinstance(error, EOFError) or any(s in text for s in ("central directory", "failed reading", "truncated")) or (
+            zipped and isinstance(error, OSError)):
+        return "the file is truncated or corrupt"
+    return "not a torch checkpoint file"
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Read a checkpoint with ``weights_only=True`` onto the CPU; one-line :class:`MatlError` on failure."""
-    path = Path(path).expanduser()
+    path = Path(str(path)).expanduser()
+    if path.is_dir():
+        raise MatlError(f"checkpoint {path} is a folder: {CKPT_FIX}")
     if not path.is_file():
-        raise MatlError(f"checkpoint {path} not found")
+        raise MatlError(f"checkpoint {path} not found: {CKPT_FIX}")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError) as error:
-        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise MatlError(f"checkpoint {path} cannot be read safely (weights_only=True): {first}") from error
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
-        raise MatlError(f"checkpoint {path} has no state_dict: not a Lightning checkpoint")
+        with warnings.catch_warnings():  # torch warns about pickle protocols of files it then refuses anyway
+            warnings.simplefilter("ignore")
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # any failure to parse the file is the file's, not a bug
+        raise MatlError(f"checkpoint {path} cannot be read safely (weights_only=True): {_read_failure(path, error)}; "
+                        f"{CKPT_FIX}") from None
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
+        raise MatlError(f"checkpoint {path} has no state_dict: not a Lightning checkpoint; {CKPT_FIX}")
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in ckpt["state_dict"].items()):
+        raise MatlError(f"checkpoint {path} has a state_dict that is not a table of named tensors; {CKPT_FIX}")
     return ckpt
 
 
 def checkpoint_info(ckpt: dict[str, Any], path: str | Path) -> tuple[int, int]:
     """``(image_size, num_anchors)`` recorded by ``MATLModule.on_save_checkpoint``."""
     if "matl_image_size" not in ckpt or "matl_num_anchors" not in ckpt:
-        raise MatlError(f"checkpoint {path} has no matl_image_size / matl_num_anchors: not written by matl.train")
-    return int(ckpt["matl_image_size"]), int(ckpt["matl_num_anchors"])
+        raise MatlError(f"checkpoint {path} has no matl_image_size / matl_num_anchors: not written by matl.train; "
+                        f"{CKPT_FIX}")
+    values = ckpt["matl_image_size"], ckpt["matl_num_anchors"]
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in values):
+        raise MatlError(f"checkpoint {path} records matl_image_size={values[0]!r}, matl_num_anchors={values[1]!r}, "
+                        f"not positive integers: not written by matl.train; {CKPT_FIX}")
+    return int(values[0]), int(values[1])
 
 
 #: what a published (slim) checkpoint keeps: the weights and what rebuilds the model
@@ -140,7 +220,17 @@ def build_model(model_cfg: DictConfig | dict[str, Any], ckpt: dict[str, Any], pa
     """
     cfg = OmegaConf.create(model_cfg) if isinstance(model_cfg, dict) else model_cfg
     check_model_targets(cfg, path)  # the config came with the checkpoint (or run folder): it names code to run
-    model = hydra.utils.instantiate(cfg)
+    try:
+        model = hydra.utils.instantiate(cfg)
+    except MatlError:
+        raise
+    except Exception as error:  # a config this version cannot build is the file's, not a bug
+        first = " ".join(str(error).split())[:200] or type(error).__name__
+        raise MatlError(f"checkpoint {path}: its model config cannot be built by this version of matl ({first}); "
+                        f"{CKPT_FIX}") from None
+    if not isinstance(model, L.LightningModule):
+        raise MatlError(f"checkpoint {path}: its model config builds a {type(model).__name__}, not a matl model; "
+                        f"{CKPT_FIX}")
     if hasattr(model, "attach_data"):
         class_names = ckpt.get("matl_class_names")
         if datamodule is not None:
@@ -358,10 +448,11 @@ def load_embedding_model(ckpt_path: str | Path, image_size: int | None = None,
         raise MatlError(f"checkpoint {ckpt_path} was trained at {size} px, not image_size={image_size}: the model "
                         "size always comes from the checkpoint (drop image_size=)")
     config = ckpt.get("matl_config")
-    if not isinstance(config, dict) or "model" not in config:
-        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train")
-    data_size = config.get("data", {}).get("image_size")
-    if data_size is not None and int(data_size) != size:
+    if not isinstance(config, dict) or not isinstance(config.get("model"), dict):
+        raise MatlError(f"checkpoint {ckpt_path} carries no matl_config: not written by matl.train; {CKPT_FIX}")
+    data = config.get("data") if isinstance(config.get("data"), dict) else {}
+    data_size = data.get("image_size")
+    if data_size is not None and str(data_size) != str(size):
         raise MatlError(f"checkpoint {ckpt_path} is inconsistent: matl_image_size={size} but its config says "
                         f"data.image_size={data_size}")
     model = build_model(config["model"], ckpt, ckpt_path)
@@ -369,5 +460,5 @@ def load_embedding_model(ckpt_path: str | Path, image_size: int | None = None,
         raise MatlError(f"checkpoint {ckpt_path} is a {type(model).__name__}, which cannot enrol new objects: "
                         "predict needs an embedding model (model=matl or model=tl)")
     model.eval()
-    model.homography_config = config.get("data", {}).get("homography")  # the training warps, for calibration
+    model.homography_config = data.get("homography")  # the training warps, for calibration
     return model.to(device), size, num_anchors, file_sha256(ckpt_path)

@@ -198,9 +198,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
                 target = cfg.publish
                 if target == "shipped":  # the model inside the package: Recognizer.pretrained(), predict without ckpt=
-                    from matl.inference.api import PRETRAINED as target
+                    from matl.models.checkpoint import PRETRAINED as target
                 elif target == "shipped_fast":  # the fast one: Recognizer.pretrained("fast"), ckpt=pretrained_fast
-                    from matl.inference.api import PRETRAINED_FAST as target
+                    from matl.models.checkpoint import PRETRAINED_FAST as target
                 published = publish_checkpoint(ckpt, target, results)
                 results["published"] = str(published)
                 log.info("published the tested checkpoint as %s (%.1f MB)", published,

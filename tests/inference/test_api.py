@@ -264,3 +264,90 @@ def test_same_numbers_as_the_predict_command(tiny_run: Path, tmp_path: Path) -> 
     for record, match in zip(records, matches, strict=True):
         assert (match.object, match.known, match.anchor) == (record["object"], record["known"], record["anchor"])
         assert match.distance == record["distance"] and match.H.tolist() == record["H"]
+
+
+# ------------------------------------------------------------------------------ saved galleries
+def gallery_folder(root: Path, planes: int) -> Path:
+    """``planes`` products of one plane each, distinct textured art (``GALLERY_HW`` PNGs)."""
+    for k in range(planes):
+        (root / f"p{k:02d}").mkdir(parents=True)
+        art = product_art((0.2 + 0.04 * k, 0.5, 0.9 - 0.03 * k), k)
+        cv2.imwrite(str(root / f"p{k:02d}" / "front.png"), art[..., ::-1])
+    return root
+
+
+def test_a_saved_gallery_grows_linearly_and_holds_images_and_features_only(tmp_path: Path) -> None:
+    """Each plane stores its own canonical image and features (a view into an enrolled batch would store the whole
+    batch: the file grew with the square of the gallery), plus the calibration's samples."""
+    sizes, payloads = {}, {}
+    for n in (1, 20):
+        rec = stub_recognizer().enrol(gallery_folder(tmp_path / f"g{n}", n), cache=False)
+        rec.save(tmp_path / f"g{n}.pt")
+        sizes[n] = (tmp_path / f"g{n}.pt").stat().st_size
+        payloads[n] = torch.load(tmp_path / f"g{n}.pt", weights_only=True)
+        assert payloads[n]["calibration"] is not None  # threshold=auto: kept with the gallery
+    assert sizes[20] <= 20 * sizes[1] * 1.1
+    for n, payload in payloads.items():
+        tensors = [t for plane in payload["planes"] for t in plane.values() if isinstance(t, torch.Tensor)]
+        tensors += [t for t in payload["calibration"].values() if isinstance(t, torch.Tensor)]
+        content = sum(t.numel() * t.element_size() for t in tensors)
+        image_bytes = n * 3 * SIZE * SIZE
+        assert content <= image_bytes * 1.1  # the canonical images dominate: features, matrices, samples are small
+        assert sizes[n] <= content + 1024 * len(tensors) + 8192, (n, sizes[n], content)  # torch.save's framing
+
+
+def test_the_calibration_is_kept_by_save_and_beside_an_enrolled_folder(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer().enrol(gallery)  # cache=True: features and calibration kept in the folder
+    threshold = rec.threshold
+    cache = rec.calibration_cache_file()
+    assert cache is not None and cache.parent == gallery and cache.is_file()
+    rec.save(tmp_path / "saved.pt")
+    computed: list[str] = []
+    calibrate = Recognizer.calibration
+
+    def counted(self: Recognizer) -> dict[str, torch.Tensor]:
+        computed.append(self.calibration_key())
+        return calibrate(self)
+
+    monkeypatch.setattr(Recognizer, "calibration", counted)
+    assert stub_recognizer().load(tmp_path / "saved.pt").threshold == threshold
+    again = stub_recognizer().enrol(gallery)
+    assert again.threshold == threshold and again.calibration_cache_file() == cache
+    samples = rec.calibration()  # (counted)
+    assert stub_recognizer(open_set_quantile=0.5).load(tmp_path / "saved.pt").threshold == pytest.approx(
+        calibrate_open_set(samples["genuine"], samples["impostor"], 0.5))  # the quantile is not in the key
+    assert len(computed) == 1
+    query = read_rgb(queries / "red_box.png")
+    a, b = stub_recognizer().load(tmp_path / "saved.pt").predict(query), rec.predict(query)
+    assert (a.object, a.known, a.score, a.statistic) == (b.object, b.known, b.score, b.statistic)
+    # other calibration options, another gallery, an edited file: calibrated again
+    assert stub_recognizer(verify_max=0.2).load(tmp_path / "saved.pt").threshold is not None and len(computed) == 2
+    grown = stub_recognizer().load(tmp_path / "saved.pt").add("extra", "top", read_rgb(queries / "blue_card.png"))
+    assert grown.calibration_cache_file() is None and grown.threshold is not None and len(computed) == 3
+    cv2.imwrite(str(gallery / "red_box" / "front.png"), read_rgb(queries / "red_box.png")[..., ::-1])
+    edited = stub_recognizer().enrol(gallery)
+    assert edited.threshold is not None and len(computed) == 4 and computed[-1] != computed[0]
+
+
+def test_grey_queries_are_matched_against_the_grey_twins_of_the_planes(tmp_path: Path) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery)
+    colour = read_rgb(queries / "red_box.png")
+    grey = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY)
+    answer = rec.predict(grey)  # an HxW uint8 array
+    twin = rec._grey_twin()
+    assert twin is not rec and twin.planes == rec.planes
+    assert all(bool((p.canon_u8[0] == p.canon_u8[1]).all()) for p in twin._planes)
+    # the stub's c() is the mean colour: a grey query is as far from a colour gallery as its colours are, and at
+    # its own luma from the grey twins
+    as_colour = rec._predict_arrays([np.repeat(grey[..., None], 3, -1).astype(np.float32) / 255.0])[0][0]
+    assert answer.distance < 0.05 < as_colour.distance
+    tensor = torch.from_numpy(grey.astype(np.float32) / 255.0)[None]  # (1, H, W) float
+    assert rec.predict(tensor).distance == pytest.approx(answer.distance)
+    # a mixed batch: each answered as alone, in the given order
+    batch = rec.predict([colour, grey, queries / "blue_card.png"])
+    assert [m.distance for m in batch] == pytest.approx([rec.predict(colour).distance, answer.distance,
+                                                         rec.predict(queries / "blue_card.png").distance])
+    assert batch[0].object == "red_box" and batch[2].object == "blue_card"

@@ -198,3 +198,59 @@ def test_bench_onnx_entry_answers_like_the_eager_recognizer(tmp_path: Path, cach
     monkeypatch.setitem(sys.modules, "onnxruntime", None)
     skipped = measure_onnx(model, gallery, queries, 1, [1], torch.device("cpu"))
     assert skipped["query_ms"] == {} and "pip install" in skipped["matl_onnx_skipped"]
+
+
+# ------------------------------------------------------------------------------ the alignment stage
+def tiny_stage(seed: int = 3):
+    from matl.models.align import AlignmentStage
+
+    torch.manual_seed(seed)
+    stage = AlignmentStage(image_size=S, iterations=2, channels=(8, 8), hidden=16)
+    nn.init.normal_(stage.regressor.fc2.weight, std=0.05)  # not the identity it starts at
+    return stage.eval()
+
+
+@pytest.mark.parametrize("fmt", ["torchscript", "onnx"])
+def test_the_alignment_stage_is_exported_and_answers_like_eager(tmp_path: Path, fmt: str) -> None:
+    if fmt == "onnx":
+        pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
+    from matl.inference.export import OnnxNetwork
+
+    feature_net, stn = tiny_networks(4)
+    stage = tiny_stage()
+    info = export_inference(feature_net, stn, S, tmp_path, fmt, tolerance=1e-5, align=stage)
+    suffix = ".onnx" if fmt == "onnx" else ".pt"
+    assert info["files"]["align_net"] == f"align_net{suffix}" and info["max_abs_diff"]["align_net"] <= 1e-5
+    assert "align_net" in info and "align_net's" in info["pose"]
+    align_net = OnnxNetwork(tmp_path / "align_net.onnx") if fmt == "onnx" else torch.jit.load(
+        str(tmp_path / "align_net.pt"))
+    images, anchors = textured_planes(5, S, 7), textured_planes(5, S, 8)  # batch 5: neither traced nor checked
+    with torch.no_grad():
+        out = stn(images)
+        eager = stage.infer(images, anchors, out.query_H_anchor, out.warped).query_H_anchor
+        exported = align_net(images, anchors, out.query_H_anchor, out.warped)
+    assert torch.allclose(exported, eager, atol=1e-5)
+    assert not torch.allclose(eager, out.query_H_anchor, atol=1e-3)  # the stage moved the pose: a real comparison
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["export.json", *info["files"].values()])
+
+
+def test_an_export_replaces_an_earlier_one_only_when_asked_and_a_failed_one_leaves_it(
+        tmp_path: Path, cache_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import matl.inference.export as export_module
+
+    ckpt = write_tiny_checkpoint(tmp_path / "ckpt" / "tiny.ckpt", cache_dir)
+    out = tmp_path / "exported"
+    export(compose_config("export", [f"ckpt={ckpt}", f"out={out}"], tmp_path / "run"))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(MatlError, match=r"already holds export\.json, gallery_net\.pt, query_net\.pt: pass "
+                                        r"overwrite=true to replace them"):
+        export(compose_config("export", [f"ckpt={ckpt}", f"out={out}"], tmp_path / "run"))
+    monkeypatch.setattr(export_module, "_max_diffs", lambda eager, exported, names: dict.fromkeys(names, 1.0))
+    with pytest.raises(MatlError, match="differs from the eager model"):
+        export(compose_config("export", [f"ckpt={ckpt}", f"out={out}", "overwrite=true"], tmp_path / "run"))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # untouched, no temporary folder left
+    monkeypatch.undo()
+    info = export(compose_config("export", [f"ckpt={ckpt}", f"out={out}", "overwrite=true", "format=onnx"],
+                                 tmp_path / "run"))
+    assert info["format"] == "onnx" and (out / "query_net.onnx").is_file()
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]

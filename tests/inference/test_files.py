@@ -125,18 +125,19 @@ def test_predict_end_to_end_with_tiny_checkpoint(tiny_run: Path, tmp_path: Path,
     assert payload["features"].shape[0] == 5 * 4
     caplog.clear()
     with caplog.at_level(logging.INFO):
-        predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["batch_size=2"]))
-    assert any("loaded from" in r.getMessage() for r in caplog.records)
+        predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["batch_size=2", "overwrite=true"]))
+    assert any("gallery features loaded from" in r.getMessage() for r in caplog.records)
+    assert any("open-set calibration loaded from" in r.getMessage() for r in caplog.records)  # kept, not redone
     # same answers from the cached features
     assert (tmp_path / "out" / "pred.jsonl").read_text().splitlines() == lines
     stat = (gallery / "red_box" / "front.png").stat()
     os.utime(gallery / "red_box" / "front.png", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
-    predict(predict_cfg(tmp_path, ckpt, gallery, queries))
+    predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["overwrite=true"]))
     refreshed = list(gallery.glob(".matl_gallery_*.pt"))
     assert len(refreshed) == 1 and refreshed != caches
 
     # a single file works too
-    single = predict(predict_cfg(tmp_path, ckpt, gallery, queries / "red_box.png", ["cache=false"]))
+    single = predict(predict_cfg(tmp_path, ckpt, gallery, queries / "red_box.png", ["cache=false", "overwrite=true"]))
     assert single["predicted"] == 1
 
 
@@ -205,3 +206,49 @@ def test_predict_exit_codes_when_inputs_are_bad(tiny_run: Path, tmp_path: Path) 
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert len(out.read_text().splitlines()) == 3 and "skipped" in proc.stderr + proc.stdout
+
+
+def test_a_rerun_never_loses_an_earlier_result(tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """out= is checked before any work and written whole: an existing file needs overwrite=true, and a run that
+    is interrupted leaves the earlier, complete file as it was (no truncation, no temporary file left)."""
+    ckpt = tiny_run / "checkpoints" / "best.ckpt"
+    gallery, queries, _ = make_files(tmp_path)
+    out = tmp_path / "out" / "pred.jsonl"
+    predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["cache=false", "threshold=null"]))
+    earlier = out.read_text()
+    assert len(earlier.splitlines()) == 3
+
+    def never(*args, **kwargs):
+        raise AssertionError("the gallery was enrolled before the outputs were checked")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Recognizer, "enrol", never)
+        with pytest.raises(MatlError, match=r"out=.*pred\.jsonl already exists: pass overwrite=true"):
+            predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["cache=false"]))
+        (tmp_path / "a_file").write_text("")
+        for target, message in ((tmp_path / "out", "is a folder: name a file in it"),
+                                (tmp_path / "a_file" / "p.jsonl", r"cannot be created: .*a_file is a file, not a")):
+            cfg = predict_cfg(tmp_path, ckpt, gallery, queries)
+            cfg.out = str(target)
+            with pytest.raises(MatlError, match=message):
+                predict(cfg)
+    assert out.read_text() == earlier
+
+    answered = Recognizer.predict_details
+
+    def interrupted(self: Recognizer, arrays: list[np.ndarray]):
+        if interrupted.calls == 1:
+            raise KeyboardInterrupt  # killed after the first answer was written
+        interrupted.calls += 1
+        return answered(self, arrays)
+
+    interrupted.calls = 0
+    with monkeypatch.context() as patch:
+        patch.setattr(Recognizer, "predict_details", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["cache=false", "threshold=null", "batch_size=1",
+                                                                    "overwrite=true"]))
+    assert out.read_text() == earlier and sorted(p.name for p in out.parent.iterdir()) == ["pred.jsonl"]
+    predict(predict_cfg(tmp_path, ckpt, gallery, queries / "red_box.png", ["cache=false", "threshold=null",
+                                                                           "overwrite=true"]))
+    assert len(out.read_text().splitlines()) == 1  # replaced, once complete

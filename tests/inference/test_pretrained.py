@@ -11,6 +11,7 @@ import torch
 from omegaconf import OmegaConf
 
 import matl.inference.api
+import matl.models.checkpoint
 from matl import Recognizer
 from matl.inference.files import predict
 from matl.utils.errors import MatlError
@@ -36,11 +37,12 @@ def test_the_shipped_model_is_small_and_loads_offline() -> None:
 
 
 @needs_model
-def test_exporting_the_shipped_model_says_its_stage_is_not_exported(tmp_path: Path) -> None:
+def test_exporting_the_shipped_model_exports_its_alignment_stage(tmp_path: Path) -> None:
     from matl.inference.export import export
 
     info = export(compose_config("export", [f"ckpt={SHIPPED}", f"out={tmp_path / 'out'}"], tmp_path / "run"))
-    assert "not exported" in info["alignment_stage"]
+    assert "exported as align_net" in info["alignment_stage"] and info["files"]["align_net"] == "align_net.pt"
+    assert info["max_abs_diff"]["align_net"] <= info["tolerance"] and (tmp_path / "out" / "align_net.pt").is_file()
     assert json.loads((tmp_path / "out" / "export.json").read_text())["alignment_stage"] == info["alignment_stage"]
 
 
@@ -66,7 +68,7 @@ def test_predict_without_ckpt_uses_the_shipped_model(tmp_path: Path) -> None:
 
 
 def test_predict_without_ckpt_and_without_a_shipped_model_is_one_line(tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr(matl.inference.api, "PRETRAINED", tmp_path / "missing.ckpt")
+    monkeypatch.setattr(matl.models.checkpoint, "PRETRAINED", tmp_path / "missing.ckpt")
     gallery, queries, _ = make_files(tmp_path)
     cfg = compose_config("predict", [f"gallery={gallery}", f"images={queries}", f"out={tmp_path / 'p.jsonl'}"],
                          tmp_path)
@@ -113,6 +115,6 @@ def test_ckpt_pretrained_fast_names_the_fast_model_on_the_command_line(tmp_path:
 
 
 def test_a_missing_shipped_model_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(matl.inference.api, "PRETRAINED_FAST", tmp_path / "missing.ckpt")
+    monkeypatch.setattr(matl.models.checkpoint, "PRETRAINED_FAST", tmp_path / "missing.ckpt")
     with pytest.raises(MatlError, match=r"no pretrained model ships with this version of matl .*missing\.ckpt"):
         Recognizer.pretrained("fast")
