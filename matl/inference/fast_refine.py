@@ -33,9 +33,21 @@ few hundred microseconds on one CPU core:
 * **Where it starts**: ``start=stn`` (default) refines ``s()``'s pose and a refined recognizer skips
   the model's learned alignment stage (``model.align``), whose job this does at a fraction of its cost;
   ``start=align`` refines the stage's pose.
-* **Never worse than its start**: at full resolution the objective of the result is compared with the
-  start's; a query whose loss did not decrease, or whose matrix is non-finite or ill-conditioned,
-  keeps its start.
+* **What the query shows** (``visibility``): the query's visibility in [0, 1] per pixel (its mask: an RGBA alpha,
+  the foreground step's; ones when none), warped into the anchor frame by the same pose, weighs each pixel of the
+  anchor's foreground in the gain / bias fit and in the loss (a pixel beside the foreground keeps its full weight:
+  the outline counts); a foreground pixel the query does not show costs a constant, what a residual of ``delta``
+  does, so the print an occluder or the mask hides does not pull the pose, and no pose gains by hiding the product
+  (:func:`~matl.inference.fast_refine_kernels.objective_weighted`).
+* **Small queries** (``upscale``): a query file enlarged to the model's size by more than ``match_upscale`` is
+  blurrier than the anchor, and a sharp anchor against a blurred query pulls the pose inwards (a dark fringe
+  inside the outline costs less when the anchor shrinks onto the query's interior). Such a query is refined
+  against its anchor brought to the query's resolution: resized to the file's scale and back, as the query was
+  (computed once per anchor and size, :meth:`FastRefiner.anchor_levels`).
+* **Never worse than where it started**: at full resolution the objective of the result is compared with the
+  start's and with those of the other unrefined poses given (``alternatives``: the alignment stage's pose,
+  ``compare_align``), each on every pixel of the same region; the pose with the lowest loss is kept, the refined
+  one only when it is strictly lower and its matrix is finite and well conditioned.
 
 Batch-1 latency is what matters (one camera crop at a time), so a query never touches torch: the warps are
 OpenCV's (``cv2.warpPerspective`` of a small grayscale image costs microseconds, a torch op ~10 us of
@@ -49,6 +61,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,7 +72,7 @@ import torch
 
 from matl.geometry import degenerate_matrix, sample_by_pixels
 from matl.inference import fast_refine_kernels as kernels
-from matl.inference.refine import RefineResult
+from matl.inference.refine import RefineResult, at_resolution
 from matl.utils.errors import MatlError
 from matl.utils.timing import opencv_threads
 
@@ -142,6 +155,12 @@ class AnchorTemplates:
     #: ``region=auto``: per anchor, ``(H, W)`` uint8 1 where the anchor frame is farther than ``auto_band`` px
     #: from the anchor's foreground (None otherwise)
     outside: list[np.ndarray] | None = None
+    #: the anchor images ``(G, 3, H, W)`` they were computed from (a reference: an anchor at another resolution is
+    #: computed from them when first needed)
+    source: torch.Tensor | None = None
+    #: ``(anchor, side) -> (levels, foreground levels, outside)`` of anchors at another resolution, least recently
+    #: used first
+    resampled: OrderedDict = field(default_factory=OrderedDict, repr=False)
 
     def __len__(self) -> int:
         return len(self.anchors)
@@ -151,6 +170,8 @@ class AnchorTemplates:
         """Memory held, bytes."""
         held = sum(level.nbytes for anchor in self.anchors for level in anchor)
         held += sum(level.nbytes for anchor in self.foreground or () for level in anchor)
+        held += sum(level.nbytes for levels, fg, _ in self.resampled.values() for level in (*levels, *(fg or ())))
+        held += sum(out.nbytes for _, _, out in self.resampled.values() if out is not None)
         return held + sum(mask.nbytes for mask in self.outside or ())
 
 
@@ -212,13 +233,22 @@ class FastRefiner:
         auto_band, auto_level, auto_leak: ``region=auto``'s test (:meth:`leak`): query pixels brighter than
             ``auto_level`` more than ``auto_band`` px outside the anchor's foreground, above ``auto_leak`` of its area.
         auto_from: ``region=auto``'s foreground pass starts from the whole-frame result (``refined``) or the start.
+        compare_align: a refined recognizer (``start=stn`` on a model with an alignment stage) also runs the stage
+            and keeps its pose where its loss is lower than the refined one's and s()'s (costs the stage's time).
+        match_upscale: a query whose file was enlarged by more than this factor to the model's size is refined
+            against its anchor at the query's resolution (None: never).
+        cache: anchors at another resolution kept (least recently used dropped beyond it).
+        visibility: weigh the anchor's foreground pixels by the query's visibility (its mask) warped into the anchor
+            frame; False: every pixel counts fully, whatever the query's mask.
     """
 
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
                  loss: str = "huber", delta: float = 2.0, damping: float = 1e-3, min_size: int = 8,
                  min_std: float = 0.02, erode: int = 1, max_condition: float = 1e4, tolerance: float = 0.25,
                  threads: int | None = None, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
-                 auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined") -> None:
+                 auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined",
+                 compare_align: bool = False, match_upscale: float | None = 1.2, cache: int = 4096,
+                 visibility: bool = True) -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
         if not per_level or min(per_level) < 0:
@@ -254,6 +284,17 @@ class FastRefiner:
                             f"auto_from={auto_from!r}")
         self.auto_band, self.auto_leak, self.auto_from = int(auto_band), float(auto_leak), auto_from
         self.auto_level = float(auto_level)
+        if not isinstance(compare_align, bool):
+            raise MatlError(f"refiner.compare_align must be true or false, got {compare_align!r}")
+        if match_upscale is not None and (isinstance(match_upscale, bool) or not float(match_upscale) >= 1.0):
+            raise MatlError(f"refiner.match_upscale must be a factor >= 1 or null (never), got {match_upscale!r}")
+        if isinstance(cache, bool) or int(cache) < 0:
+            raise MatlError(f"refiner.cache must be an integer >= 0, got {cache!r}")
+        if not isinstance(visibility, bool):
+            raise MatlError(f"refiner.visibility must be true or false, got {visibility!r}")
+        self.compare_align, self.visibility = compare_align, visibility
+        self.match_upscale = None if match_upscale is None else float(match_upscale)
+        self.cache = int(cache)
         self._templates: AnchorTemplates | None = None  # set by prepare()
         self._level_ms: list[float] = []
 
@@ -333,7 +374,7 @@ class FastRefiner:
         gray = [image for image, _ in _luminance(anchors)]
         fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
         # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
-        kinds = {"frame": ("frame",), "foreground": ("foreground",), "auto": ("frame", "foreground")}[self.region]
+        kinds = self._kinds()
         per_anchor = [self._anchor(gray[i], fg[i], kinds) for i in range(len(gray))]
         templates = [levels[0] for levels in per_anchor]
         foreground = outside = None
@@ -343,7 +384,45 @@ class FastRefiner:
             kernel = np.ones((size, size), np.uint8)
             outside = [(cv2.dilate((f > 0).astype(np.uint8), kernel) == 0).astype(np.uint8) for f in fg]
         return AnchorTemplates(templates, (int(anchors.shape[-2]), int(anchors.shape[-1])),
-                               time.perf_counter() - start, foreground, outside)
+                               time.perf_counter() - start, foreground, outside, anchors.detach())
+
+    def _kinds(self) -> tuple[str, ...]:
+        return {"frame": ("frame",), "foreground": ("foreground",), "auto": ("frame", "foreground")}[self.region]
+
+    def anchor_levels(self, templates: AnchorTemplates, k: int, upscale: float | None = None
+                      ) -> tuple[list[AnchorLevel], list[AnchorLevel] | None, np.ndarray | None]:
+        """Anchor ``k``'s ``(levels, region=auto's foreground levels, its outside mask)`` for a query whose file was
+        enlarged ``upscale`` times to the model's size: the precomputed ones, or, above ``match_upscale``, those of
+        the anchor at the query's resolution (:func:`~matl.inference.refine.at_resolution`: resized to
+        ``round(S / upscale)`` px and back), computed once per anchor and side and kept in ``templates``."""
+        side = None
+        size = min(templates.image_size)
+        if (upscale is not None and self.match_upscale is not None and upscale > self.match_upscale
+                and templates.source is not None):
+            side = max(4, round(size / float(upscale)))
+        if side is None or side >= size:
+            return (templates.anchors[k], None if templates.foreground is None else templates.foreground[k],
+                    None if templates.outside is None else templates.outside[k])
+        key = (int(k), side)
+        found = templates.resampled.get(key)
+        if found is not None:
+            templates.resampled.move_to_end(key)
+            return found
+        image = at_resolution(templates.source[k:k + 1].detach().float().cpu(), side)
+        gray = _luminance(image)[0][0]
+        fg = (image[0] > _FOREGROUND).any(dim=0).numpy().astype(np.float32)
+        kinds = self._kinds()
+        levels = self._anchor(gray, fg, kinds)
+        outside = None
+        if self.region == "auto":
+            band = 2 * self.auto_band + 1
+            outside = (cv2.dilate((fg > 0).astype(np.uint8), np.ones((band, band), np.uint8)) == 0).astype(np.uint8)
+        found = (levels[0], levels[1] if len(kinds) > 1 else None, outside)
+        if self.cache > 0:
+            templates.resampled[key] = found
+            while len(templates.resampled) > self.cache:
+                templates.resampled.popitem(last=False)
+        return found
 
     def prepare(self, anchors: torch.Tensor) -> FastRefiner:
         """Precompute the data of a gallery's anchors ``(G, 3, H, W)``; returns self."""
@@ -351,30 +430,45 @@ class FastRefiner:
         return self
 
     # ------------------------------------------------------------------------------ objective
-    def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float
-                  ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+    def _evaluate(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float,
+                  visible: np.ndarray | None = None) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
         """At the pose whose matrix in the level's pixels is ``M`` (anchor px -> query px): the loss (a mean over the
-        region, in units of ``scale``), the gain, the Gauss-Newton system ``A (8, 8)``, ``b (8,)`` there and the
-        query warped into the anchor frame ``(h, w)``."""
+        region, in units of ``scale``; weighted by the query's visibility ``visible`` ``(H, W)`` of this level warped
+        by ``M`` when given), the gain, the Gauss-Newton system ``A (8, 8)``, ``b (8,)`` there and the query warped
+        into the anchor frame ``(h, w)``."""
         warped = sample_by_pixels(query, M, anchor.size)
         region = anchor.region if anchor.region is not None else anchor.fg
+        if visible is not None:
+            seen = sample_by_pixels(visible, M, anchor.size)
+            total, gain, A, b = kernels.evaluate_weighted(
+                warped, seen, anchor.image, anchor.fg, region, anchor.region is not None, anchor.index, anchor.sdT,
+                anchor.hessian, self._loss_code, self.delta * scale)
+            return total / (anchor.total * scale * scale), gain, A, b, warped
         total, gain, A, b = kernels.evaluate(warped, anchor.image, anchor.fg, region, anchor.region is not None,
                                              anchor.mean, anchor.inv_var, anchor.inv_count, anchor.index, anchor.sdT,
                                              anchor.hessian, self._loss_code, self.delta * scale)
         return total / (anchor.total * scale * scale), gain, A, b, warped
 
-    def _loss(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float) -> float:
-        """:meth:`_evaluate`'s loss alone (no normal equations): the objective at the pose whose matrix is ``M``."""
+    def _loss(self, query: np.ndarray, anchor: AnchorLevel, M: np.ndarray, scale: float,
+              visible: np.ndarray | None = None) -> float:
+        """:meth:`_evaluate`'s loss alone (no normal equations): the objective at the pose whose matrix is ``M``
+        (``visible``: the query's visibility ``(H, W)`` of this level, warped by ``M`` here)."""
         warped = sample_by_pixels(query, M, anchor.size)
         region = anchor.region if anchor.region is not None else anchor.fg
+        if visible is not None:
+            total = kernels.objective_weighted(warped, sample_by_pixels(visible, M, anchor.size), anchor.image,
+                                               anchor.fg, region, anchor.region is not None, self._loss_code,
+                                               self.delta * scale)[0]
+            return total / (anchor.total * scale * scale)
         total = kernels.objective(warped, anchor.image, anchor.fg, region, anchor.region is not None, anchor.mean,
                                   anchor.inv_var, anchor.inv_count, self._loss_code, self.delta * scale)[0]
         return total / (anchor.total * scale * scale)
 
-    def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int
-               ) -> tuple[np.ndarray, float, np.ndarray]:
+    def _level(self, query: np.ndarray, anchor: AnchorLevel, H: np.ndarray, scale: float, iterations: int,
+               visible: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray]:
         """Gauss-Newton / Levenberg-Marquardt at one level; the lowest-loss pose, its loss and its warped query."""
-        loss, gain, A, b, warped = self._evaluate(query, anchor, anchor.pixel_H_norm @ H @ anchor.norm_H_pixel, scale)
+        loss, gain, A, b, warped = self._evaluate(query, anchor, anchor.pixel_H_norm @ H @ anchor.norm_H_pixel, scale,
+                                                  visible)
         lam = self.damping
         for _ in range(iterations):
             if not math.isfinite(loss) or gain <= 1e-6:
@@ -383,7 +477,7 @@ class FastRefiner:
                                                      anchor.norm_H_pixel)
             if not ok:
                 break
-            cand_loss, cand_gain, cand_A, cand_b, cand_warped = self._evaluate(query, anchor, M, scale)
+            cand_loss, cand_gain, cand_A, cand_b, cand_warped = self._evaluate(query, anchor, M, scale, visible)
             if cand_loss < loss:
                 H, loss, gain, A, b, warped = candidate, cand_loss, cand_gain, cand_A, cand_b, cand_warped
                 lam = max(lam * 0.1, 1e-9)
@@ -396,14 +490,15 @@ class FastRefiner:
         return H, loss, warped
 
     def _descend(self, pyramid: list[np.ndarray], anchor: list[AnchorLevel], H: np.ndarray, scale: float,
-                 timing: bool) -> tuple[np.ndarray, float, np.ndarray]:
-        """Coarse to fine from the normalised pose ``H``; the final normalised pose, its loss at full size and the
-        full-size query warped by it."""
+                 timing: bool, visible: list[np.ndarray] | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+        """Coarse to fine from the normalised pose ``H`` (``visible``: the query's visibility per level); the final
+        normalised pose, its loss at full size and the full-size query warped by it."""
         loss, warped = math.inf, pyramid[0]
         times = [0.0] * len(pyramid)
         for level in reversed(range(len(pyramid))):  # coarsest first
             t0 = time.perf_counter() if timing else 0.0
-            H, loss, warped = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level))
+            H, loss, warped = self._level(pyramid[level], anchor[level], H, scale, self._iterations(level),
+                                          None if visible is None else visible[level])
             if timing:
                 times[level] = 1e3 * (time.perf_counter() - t0)
         if timing:
@@ -421,10 +516,12 @@ class FastRefiner:
 
     def refine_one(self, query: np.ndarray, anchor: list[AnchorLevel], query_H_anchor: np.ndarray,
                    timing: bool = False, foreground: list[AnchorLevel] | None = None,
-                   outside: np.ndarray | None = None, std: float | None = None
-                   ) -> tuple[np.ndarray, float, float, bool]:
+                   outside: np.ndarray | None = None, std: float | None = None, visible: np.ndarray | None = None,
+                   alternatives: Sequence[np.ndarray] = ()) -> tuple[np.ndarray, float, float, bool, int]:
         """One query: luminance ``(H, W)`` float32, its anchor's levels, a pixel ``query_H_anchor`` ``(3, 3)``
-        (``std``: the std of the query's foreground when known).
+        (``std``: the std of the query's foreground when known; ``visible``: the query's visibility ``(H, W)``
+        float32 in [0, 1], None: all of it; ``alternatives``: other unrefined pixel poses ``(3, 3)`` to keep when
+        their loss is lower).
 
         ``region=auto`` passes the anchor's ``region=foreground`` levels and its ``outside`` mask too: after the
         whole-frame refinement, a query with more than ``auto_leak`` of the anchor's foreground area in non-black
@@ -432,12 +529,14 @@ class FastRefiner:
         background a mask let through, a neighbour) is refined again over the foreground alone, from the
         whole-frame result (``auto_from=refined``) or from the start (``start``), and judged by that objective.
 
-        Returns ``(query_H_anchor (3, 3) float64 pixels, loss_before, loss_after, accepted)``;
-        ``timing=True`` keeps the milliseconds of each level for :attr:`last_level_ms` (finest first).
+        Returns ``(query_H_anchor (3, 3) float64 pixels, loss_before, loss_after, accepted, source)``: the start's
+        loss, the kept pose's, whether that is the refined one, and which it is (0 refined, 1 the start, 2 + i
+        ``alternatives[i]``); ``timing=True`` keeps the milliseconds of each level for :attr:`last_level_ms`
+        (finest first).
         """
         H0 = np.asarray(query_H_anchor, dtype=np.float64)
         if not math.isfinite(H0.sum()) or abs(H0[2, 2]) < 1e-12:  # a NaN or infinite entry makes the sum one
-            return H0, math.inf, math.inf, False
+            return H0, math.inf, math.inf, False, 1
         full = anchor[0]
         H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
         H0n = H0n / H0n[2, 2]
@@ -447,22 +546,33 @@ class FastRefiner:
         raw = query
         query = self._blurred(query)
         pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
-        H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing)
+        seen = None if visible is None else _pyramid(np.ascontiguousarray(visible, dtype=np.float32), len(pyramid),
+                                                     self.min_size)
+        H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing, seen)
         if foreground is not None and outside is not None and self.leak(
                 raw, full, outside, H, warped if raw is query else None) > self.auto_leak:
             anchor, full = foreground, foreground[0]
-            H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
-        loss_before = self._loss(query, full, H0, scale)  # the start's matrix in full-size pixels is H0
-        accepted = loss < loss_before and not degenerate_matrix(H, self.max_condition)
-        if not accepted:
-            return H0, loss_before, loss_before, False
+            H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False, seen)
+        others = [np.asarray(a, dtype=np.float64) for a in alternatives]
+        others = [a for a in others if math.isfinite(a.sum()) and abs(a[2, 2]) > 1e-12]
+        unrefined = [H0, *others]  # pixel poses, the start first
         H_px = full.pixel_H_norm @ H @ full.norm_H_pixel
-        return H_px / H_px[2, 2], loss_before, loss, True
+        # every pose on every pixel of the level's region (a pixel the query does not show at a pose at a fixed cost)
+        losses = [self._loss(query, full, M, scale, None if seen is None else seen[0]) for M in unrefined]
+        best = int(np.argmin(losses))  # the first of equals: the start before an alternative
+        accepted = loss < losses[best] and not degenerate_matrix(H, self.max_condition)
+        if not accepted:
+            kept = unrefined[best]
+            if best > 0:
+                kept = kept / kept[2, 2]
+            return kept, losses[0], losses[best], False, 1 + best
+        return H_px / H_px[2, 2], losses[0], loss, True, 0
 
     # ------------------------------------------------------------------------------ main
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor, anchor_index: torch.Tensor, query_H_anchor: torch.Tensor,
-                 templates: AnchorTemplates | None = None) -> RefineResult:
+                 templates: AnchorTemplates | None = None, visibility: torch.Tensor | None = None,
+                 upscale: torch.Tensor | None = None, alternatives: torch.Tensor | None = None) -> RefineResult:
         """Refine a batch against precomputed anchors.
 
         Args:
@@ -470,6 +580,10 @@ class FastRefiner:
             anchor_index: ``(B,)`` long, each query's anchor in ``templates``.
             query_H_anchor: ``(B, 3, 3)`` pixel homographies (anchor pixel -> query pixel) to start from.
             templates: :meth:`anchor_templates` of the gallery; None: those of :meth:`prepare`.
+            visibility: ``(B, 1, H, W)`` each query's visibility in [0, 1] (its mask); None (or the ``visibility``
+                option false): every pixel.
+            upscale: ``(B,)`` how many times each query's file was enlarged to the model's size (None: not known).
+            alternatives: ``(B, K, 3, 3)`` other unrefined pixel poses per query, kept where their loss is lower.
         Returns:
             :class:`~matl.inference.refine.RefineResult` with float64 pixel homographies (on the
             device of ``query_H_anchor``).
@@ -484,20 +598,28 @@ class FastRefiner:
         size = (int(queries.shape[-2]), int(queries.shape[-1]))
         if size != templates.image_size:
             raise MatlError(f"queries are {size} but the anchors {templates.image_size}: refine at the gallery's size")
+        if visibility is not None and tuple(visibility.shape) != (B, 1, *size):
+            raise MatlError(f"visibility must be (B, 1, H, W) = {(B, 1, *size)}, got {tuple(visibility.shape)}")
         gray = _luminance(queries)
         starts = query_H_anchor.detach().double().cpu().numpy()
         index = anchor_index.detach().cpu().numpy()
+        seen = None if visibility is None or not self.visibility else visibility.detach().float().cpu().numpy()[:, 0]
+        factor = None if upscale is None else torch.as_tensor(upscale).detach().double().cpu().numpy()
+        others = None if alternatives is None else alternatives.detach().double().cpu().numpy()
         out = np.empty((B, 3, 3))
         before, after, accepted = np.empty(B), np.empty(B), np.zeros(B, dtype=bool)
+        source = np.zeros(B, dtype=np.int64)
         with opencv_threads(self.threads):
             for i in range(B):
-                k = int(index[i])
+                levels, fg_levels, outside = self.anchor_levels(templates, int(index[i]),
+                                                                None if factor is None else float(factor[i]))
                 image, std = gray[i]
-                out[i], before[i], after[i], accepted[i] = self.refine_one(
-                    image, templates.anchors[k], starts[i], timing=B == 1,
-                    foreground=templates.foreground[k] if templates.foreground is not None else None,
-                    outside=templates.outside[k] if templates.outside is not None else None, std=std)
-        result = (torch.from_numpy(out), torch.from_numpy(before), torch.from_numpy(after), torch.from_numpy(accepted))
+                visible = None if seen is None or float(seen[i].min()) >= 1.0 else seen[i]
+                out[i], before[i], after[i], accepted[i], source[i] = self.refine_one(
+                    image, levels, starts[i], timing=B == 1, foreground=fg_levels, outside=outside, std=std,
+                    visible=visible, alternatives=() if others is None else list(others[i]))
+        result = (torch.from_numpy(out), torch.from_numpy(before), torch.from_numpy(after), torch.from_numpy(accepted),
+                  torch.from_numpy(source))
         device = query_H_anchor.device
         return RefineResult(*(result if device.type == "cpu" else (t.to(device) for t in result)))
 

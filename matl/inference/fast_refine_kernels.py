@@ -7,9 +7,12 @@ from Python. These functions do each group in one compiled pass; the warp itself
 (``cv2.warpPerspective``: its vectorised bilinear sampling is several times faster than a scalar loop).
 
 Every function is pure (arrays in, new arrays out) and works in float64 internally; ``loss_code`` is the
-index of the robust loss in :data:`LOSS_CODES`. ``cache=True`` keeps the machine code beside this file, so
-only the first run of an installation compiles (about a second per function); :func:`warm_up` compiles them
-up front (a refined recognizer calls it at enrolment, so no query pays for it).
+index of the robust loss in :data:`LOSS_CODES`. The ``*_weighted`` variants take the query's visibility warped into
+the anchor frame (``visible``, in [0, 1]): a pixel of the anchor's foreground counts by how visible the query is
+there (the gain / bias fit and the loss alike), a pixel beside the foreground counts fully (the outline).
+``cache=True`` keeps the machine code beside this file, so only the first run of an installation compiles (about
+a second per function); :func:`warm_up` compiles them up front (a refined recognizer calls it at enrolment, so no
+query pays for it).
 """
 
 from __future__ import annotations
@@ -19,7 +22,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["LOSS_CODES", "count_above", "evaluate", "lm_step", "luminance", "normal_equations", "objective", "warm_up"]
+__all__ = ["LOSS_CODES", "count_above", "evaluate", "evaluate_weighted", "lm_step", "luminance", "normal_equations",
+           "normal_equations_weighted", "objective", "objective_weighted", "warm_up"]
 
 #: the robust losses in the order of ``loss_code``
 LOSS_CODES = ("l2", "huber", "cauchy")
@@ -184,6 +188,158 @@ def evaluate(warped: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.n
     return total, gain, A, b
 
 
+@njit(**_REDUCE)
+def objective_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray,
+                       has_region: bool, loss_code: int, delta: float
+                       ) -> tuple[float, np.ndarray, float, np.ndarray]:
+    """:func:`objective` with a per-pixel weight from the query's visibility.
+
+    The weight of a pixel is ``u = (1 - fg + fg * visible)`` (times ``region`` when ``has_region``): a foreground
+    pixel counts as much as the query shows it, a pixel beside the foreground fully. The query's pixels are its
+    print times its visibility (a mask applied, then warped and pyramided alike), so on the foreground the print is
+    ``x = warped / visible`` (normalised convolution: a pixel half hidden at a mask's edge is not half as bright;
+    ``warped`` itself where ``visible`` is below 1e-3, whose weight is nil), beside it ``x = warped``. The gain /
+    bias fit is the least squares of ``x`` by ``gain * image + bias`` over ``fg * visible``; the loss is
+    ``sum u rho(r) + sum fg (1 - visible) rho(delta)`` with ``r = x - gain * image - bias * fg`` (times ``region``):
+    a foreground pixel the query does not show costs as much as a residual of ``delta``, whatever the print
+    there, so every pose is judged on every pixel and a pose cannot lower its loss by hiding the product. With
+    ``visible`` all ones this is :func:`objective`.
+
+    Args:
+        warped, image, fg: as :func:`objective`'s; visible: ``(h, w)`` float32 in [0, 1], the query's visibility
+            warped into the anchor frame by the same pose.
+    Returns:
+        ``(loss sum, r (h, w) float32, gain, u (h, w) float32)``; the sum is ``inf`` when not finite or when less
+        than one pixel of the foreground is visible.
+    """
+    flat_v, flat_a, flat_f = visible.ravel(), image.ravel(), fg.ravel()
+    seen = warped.copy()  # the print where it is seen: warped / visible on the foreground
+    flat_w = seen.ravel()
+    n = flat_w.shape[0]
+    for i in range(n):
+        if flat_f[i] > 0.0 and flat_v[i] >= 1e-3:
+            flat_w[i] = flat_w[i] / flat_v[i]
+    s_1 = 0.0
+    s_a = 0.0
+    s_aa = 0.0
+    s_x = 0.0
+    s_ax = 0.0
+    for i in range(n):
+        c = np.float64(flat_f[i]) * flat_v[i]
+        a = np.float64(flat_a[i])
+        x = np.float64(flat_w[i])
+        s_1 += c
+        s_a += c * a
+        s_aa += c * a * a
+        s_x += c * x
+        s_ax += c * a * x
+    weight = np.empty_like(warped)
+    flat_u = weight.ravel()
+    flat_r_region = region.ravel()
+    hidden = 0.0  # foreground pixels not shown, weighted as the loss is
+    for i in range(n):
+        u = 1.0 - flat_f[i] + flat_f[i] * flat_v[i]
+        h = np.float64(flat_f[i]) * (1.0 - flat_v[i])
+        if has_region:
+            u *= flat_r_region[i]
+            h *= flat_r_region[i]
+        flat_u[i] = u
+        hidden += h
+    if s_1 < 1.0:
+        return math.inf, warped - warped, 0.0, weight
+    var = s_aa - s_a * s_a / s_1
+    gain = (s_ax - s_a * s_x / s_1) / var
+    bias = (s_x - gain * s_a) / s_1
+    g32, b32 = np.float32(gain), np.float32(bias)
+    r = seen - g32 * image - b32 * fg
+    flat = r.ravel()
+    total = 0.0
+    if loss_code == 0:
+        for i in range(n):
+            total += flat_u[i] * (np.float64(flat[i]) * flat[i])
+        total *= 0.5
+    elif loss_code == 1:
+        for i in range(n):
+            a = abs(np.float64(flat[i]))
+            m = min(a, delta)
+            total += flat_u[i] * (m * (a - 0.5 * m))
+    else:
+        for i in range(n):
+            total += flat_u[i] * math.log1p((flat[i] / delta) ** 2)
+        total *= 0.5 * delta * delta
+    # rho(delta): delta^2 / 2 (l2, Huber), delta^2 / 2 log 2 (Cauchy)
+    total += hidden * 0.5 * delta * delta * (math.log(2.0) if loss_code == 2 else 1.0)
+    if not math.isfinite(total):
+        total = math.inf
+    return total, r, gain, weight
+
+
+@njit(**_REDUCE)
+def normal_equations_weighted(r: np.ndarray, weight: np.ndarray, index: np.ndarray, sdT: np.ndarray,
+                              hessian: np.ndarray, gain: float, loss_code: int, delta: float
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`normal_equations` with a per-pixel weight ``weight`` ``(h, w)`` (:func:`objective_weighted`'s ``u``)
+    multiplied into the robust loss's: ``A = sum_j u_j w_j sd_j sd_j^T``, ``b = sum_j u_j w_j r_j sd_j / gain``. For
+    ``l2`` and Huber the unweighted ``hessian`` is corrected on the pixels whose combined weight is not 1."""
+    flat, flat_u = r.ravel(), weight.ravel()
+    n = index.shape[0]
+    weights = np.empty(n)  # u_j w_j
+    b = np.zeros(8)
+    weighted = np.empty(n)
+    for j in range(n):
+        value = np.float64(flat[index[j]])
+        w = 1.0
+        if loss_code == 1:
+            a = abs(value)
+            if a > delta:
+                w = delta / a
+        elif loss_code == 2:
+            w = 1.0 / (1.0 + (value / delta) ** 2)
+        weights[j] = w * flat_u[index[j]]
+        weighted[j] = value * weights[j]
+    for k in range(8):
+        row = sdT[k]
+        acc = 0.0
+        for j in range(n):
+            acc += row[j] * weighted[j]
+        b[k] = acc / gain
+    if loss_code != 2:  # the Hessian less (1 - u w) of each pixel whose combined weight is not 1
+        A = hessian.astype(np.float64)
+        for j in range(n):
+            if weights[j] != 1.0:
+                for k in range(8):
+                    sk = np.float64(sdT[k, j]) * (weights[j] - 1.0)
+                    for m in range(k + 1):
+                        A[k, m] += sk * sdT[m, j]
+    else:
+        A = np.zeros((8, 8))
+        for k in range(8):
+            for m in range(k + 1):
+                acc = 0.0
+                for j in range(n):
+                    acc += np.float64(sdT[k, j]) * sdT[m, j] * weights[j]
+                A[k, m] = acc
+    for k in range(8):  # the lower triangle was accumulated
+        for m in range(k):
+            A[m, k] = A[k, m]
+    return A, b
+
+
+@njit(**_JIT)
+def evaluate_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray,
+                      has_region: bool, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, loss_code: int,
+                      delta: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """:func:`objective_weighted` and :func:`normal_equations_weighted` at its residuals in one call (the hidden
+    pixels' cost does not move with a small step: the Gauss-Newton system leaves it out).
+
+    Returns:
+        ``(loss sum, gain, A (8, 8), b (8,))``.
+    """
+    total, r, gain, weight = objective_weighted(warped, visible, image, fg, region, has_region, loss_code, delta)
+    A, b = normal_equations_weighted(r, weight, index, sdT, hessian, gain, loss_code, delta)
+    return total, gain, A, b
+
+
 @njit(**_JIT)
 def lm_step(A: np.ndarray, b: np.ndarray, lam: float, H: np.ndarray, corner_J: np.ndarray, pixel_H_norm: np.ndarray,
             norm_H_pixel: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
@@ -266,5 +422,8 @@ def warm_up() -> None:
     evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
              np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
     objective(image, image, image, image, False, 0.0, 1.0, 1.0, 1, 1.0)
+    evaluate_weighted(image, image, image, image, image, False, np.zeros(1, dtype=np.int32),
+                      np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
+    objective_weighted(image, image, image, image, image, False, 1, 1.0)
     lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))
     count_above(image, np.zeros((4, 4), dtype=np.uint8), 0.0)

@@ -21,9 +21,18 @@ polished by minimising the appearance loss itself, the classic Lucas-Kanade way:
   so the loss at each level never increases.
 * **Coarse to fine.** A Gaussian pyramid (``levels``), coarsest first: coarse levels widen the
   basin of convergence, the finest level gives sub-pixel accuracy.
-* **Divergence guard.** At full resolution the final loss is compared with the STN estimate's; a
-  query whose loss did not decrease, or whose refined matrix is non-finite or ill-conditioned,
-  keeps the STN estimate. Refinement therefore never makes the objective worse.
+* **What the query shows.** A query's visibility in [0, 1] per pixel (its mask; ones when none), warped into
+  the anchor frame with the pose, weighs each pixel of the anchor's foreground in the gain / bias fit and in
+  the loss (pixels beside the foreground keep their weight: the outline counts); a foreground pixel the query
+  does not show costs what a residual of ``delta`` does, so what an occluder or the mask hides does not pull
+  the pose and no pose gains by hiding the product.
+* **Small queries.** A query file enlarged by more than ``match_upscale`` to the model's size is compared
+  with its anchor brought to the query's resolution (:func:`at_resolution`): a sharp anchor against a blurred
+  query pulls the pose inwards.
+* **Divergence guard.** At full resolution the final loss is compared with the start's (and with those of
+  other unrefined poses given, each on every pixel); a query whose loss did not decrease, or whose refined
+  matrix is non-finite or ill-conditioned, keeps the unrefined pose of lowest loss. Refinement therefore
+  never makes the objective worse.
 
 Everything is batched over queries. ``RefinedRecognizer`` wraps any recognizer (MATL, the STN
 classifier, a keypoint baseline) and refines the pose against the anchor it selected.
@@ -52,7 +61,7 @@ from matl.geometry import (
 from matl.models.prediction import Prediction
 from matl.models.recognizer import TensorRecognizer
 
-__all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer"]
+__all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer", "at_resolution"]
 
 LOSSES = ("l2", "huber", "cauchy")
 _FOREGROUND = 1e-3  # a pixel brighter than this in any channel is foreground (backgrounds are exactly 0)
@@ -67,12 +76,27 @@ class RefineResult:
         loss_before: ``(B,)`` objective at the input pose (full resolution).
         loss_after: ``(B,)`` objective at the returned pose (``<= loss_before``).
         accepted: ``(B,)`` bool, the refined pose was kept.
+        source: ``(B,)`` int64 the pose returned: 0 the refined one, 1 the start, ``2 + i`` the ``i``-th
+            alternative unrefined pose given (None: not reported).
     """
 
     query_H_anchor: torch.Tensor
     loss_before: torch.Tensor
     loss_after: torch.Tensor
     accepted: torch.Tensor
+    source: torch.Tensor | None = None
+
+
+def at_resolution(images: torch.Tensor, side: int) -> torch.Tensor:
+    """``(B, C, H, W)`` images brought to the detail of a file whose longer side is ``side`` px: resized to it and
+    back (antialiased bilinear down, bilinear up: the resize of :func:`matl.data.image_files.fit_to_model`), as a
+    query from a file that small was enlarged to the model's size."""
+    H, W = int(images.shape[-2]), int(images.shape[-1])
+    if side >= max(H, W):
+        return images
+    h, w = max(1, round(H * side / max(H, W))), max(1, round(W * side / max(H, W)))
+    small = F.interpolate(images, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+    return F.interpolate(small, size=(H, W), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
 
 
 def _update_matrix(p: torch.Tensor) -> torch.Tensor:
@@ -109,11 +133,16 @@ class PhotometricRefiner:
             hue but not in brightness.
         tolerance: a level stops early once no query's update moves an image corner by more than
             this many pixels (of that level).
+        match_upscale: a query whose file was enlarged by more than this factor to the model's size is compared
+            with its anchor at the query's resolution (:func:`at_resolution`; None: never).
+        visibility: weigh the anchor's foreground pixels by the query's visibility (its mask) warped into the
+            anchor frame; False: every pixel counts fully.
     """
 
     def __init__(self, iterations: int = 8, levels: int = 3, step: float = 1.0, loss: str = "huber",
                  delta: float = 0.5, damping: float = 1e-3, min_size: int = 8, min_std: float = 0.02,
-                 max_condition: float = 1e4, tolerance: float = 0.01, grayscale: bool = True) -> None:
+                 max_condition: float = 1e4, tolerance: float = 0.01, grayscale: bool = True,
+                 match_upscale: float | None = 1.2, visibility: bool = True) -> None:
         if int(iterations) < 0:
             raise ValueError(f"refiner.iterations must be >= 0, got {iterations}")
         if int(levels) < 1:
@@ -129,6 +158,12 @@ class PhotometricRefiner:
         self.loss, self.delta, self.damping = loss, float(delta), float(damping)
         self.min_size, self.min_std, self.max_condition = int(min_size), float(min_std), float(max_condition)
         self.tolerance, self.grayscale = float(tolerance), bool(grayscale)
+        if match_upscale is not None and (isinstance(match_upscale, bool) or not float(match_upscale) >= 1.0):
+            raise ValueError(f"refiner.match_upscale must be a factor >= 1 or null (never), got {match_upscale!r}")
+        self.match_upscale = None if match_upscale is None else float(match_upscale)
+        if not isinstance(visibility, bool):
+            raise ValueError(f"refiner.visibility must be true or false, got {visibility!r}")
+        self.visibility = visibility
 
     # ----------------------------------------------------------------------------------- pieces
     def _query_scale(self, queries: torch.Tensor) -> torch.Tensor:
@@ -164,9 +199,16 @@ class PhotometricRefiner:
         return anchor, (anchor > _FOREGROUND).any(dim=1, keepdim=True).to(anchor.dtype)
 
     def _residuals(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
-                   scale: torch.Tensor, grid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Warped query and residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``); ``grid``:
-        the level's :func:`~matl.geometry.normalised_grid` ``(3, h * w)`` (None looks it up).
+                   scale: torch.Tensor, grid: torch.Tensor | None = None, visible: torch.Tensor | None = None,
+                   seen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Warped query, residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``) and the query's
+        visibility in the anchor frame ``(B, 1, h, w)`` (None without one); ``grid``: the level's
+        :func:`~matl.geometry.normalised_grid` ``(3, h * w)`` (None looks it up). ``visible`` ``(B, 1, h, w)``: the
+        query's visibility at this level, warped here with the query; ``seen``: already in the anchor frame.
+
+        With a visibility ``v`` the query's pixels are its print times ``v`` (a mask applied): on ``F`` the print is
+        ``warped / v`` (normalised convolution; where ``v`` is above 1e-3), the fit runs over ``F v`` and
+        :meth:`_loss` weighs the residuals by ``1 - F + F v``.
 
         Lighting model: on the anchor's foreground ``F`` the warped query is ``gain * A + bias`` per
         channel, background stays 0, so ``r = (Iw - gain * A - bias * F) / scale`` over the whole frame.
@@ -176,20 +218,47 @@ class PhotometricRefiner:
         about a pixel); and with a model rather than per-image normalisation, background pixels are 0
         on both sides and do not pull the pose towards matching image statistics.
         """
-        warped = sample_by_normalised(query, H, grid)
-        count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-        a_mean = (anchor * mask).sum(dim=(-2, -1), keepdim=True) / count
-        w_mean = (warped * mask).sum(dim=(-2, -1), keepdim=True) / count
-        a_c = (anchor - a_mean) * mask
-        cov = (a_c * warped).sum(dim=(-2, -1), keepdim=True)
-        var = (a_c * a_c).sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
+        if visible is not None and seen is None:
+            both = sample_by_normalised(torch.cat([query, visible], 1), H, grid)
+            warped, seen = both[:, :-1], both[:, -1:]
+        else:
+            warped = sample_by_normalised(query, H, grid)
+        if seen is None:
+            count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+            a_mean = (anchor * mask).sum(dim=(-2, -1), keepdim=True) / count
+            w_mean = (warped * mask).sum(dim=(-2, -1), keepdim=True) / count
+            a_c = (anchor - a_mean) * mask
+            cov = (a_c * warped).sum(dim=(-2, -1), keepdim=True)
+            var = (a_c * a_c).sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
+            gain = cov / var
+            bias = w_mean - gain * a_mean
+            return warped, (warped - gain * anchor - bias * mask) / scale, None
+        shown = (mask > 0) & (seen >= 1e-3)
+        warped = torch.where(shown, warped / seen.clamp_min(1e-3), warped)
+        fit = mask * seen
+        count = fit.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-6)
+        a_mean = (anchor * fit).sum(dim=(-2, -1), keepdim=True) / count
+        w_mean = (warped * fit).sum(dim=(-2, -1), keepdim=True) / count
+        centred = anchor - a_mean
+        cov = (centred * fit * warped).sum(dim=(-2, -1), keepdim=True)
+        var = (centred * fit * centred).sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
         gain = cov / var
         bias = w_mean - gain * a_mean
-        return warped, (warped - gain * anchor - bias * mask) / scale
+        return warped, (warped - gain * anchor - bias * mask) / scale, seen
 
-    def _loss(self, r: torch.Tensor) -> torch.Tensor:
-        """``(B,)`` mean robust loss; non-finite residuals give +inf (never accepted)."""
-        value = self._rho_and_weight(r)[0].mean(dim=(1, 2, 3))
+    def _loss(self, r: torch.Tensor, mask: torch.Tensor | None = None, seen: torch.Tensor | None = None
+              ) -> torch.Tensor:
+        """``(B,)`` mean robust loss; non-finite residuals give +inf (never accepted). With the query's visibility in
+        the anchor frame ``seen`` ``(B, 1, h, w)`` (and the anchor's foreground ``mask``) each residual is weighted
+        by ``1 - F + F v`` and a foreground pixel the query does not show costs ``F (1 - v) rho(delta)``: every
+        pixel counts, a pose cannot lower its loss by hiding the product."""
+        rho = self._rho_and_weight(r)[0]
+        if seen is None or mask is None:
+            value = rho.mean(dim=(1, 2, 3))
+        else:
+            hidden = mask * (1.0 - seen)
+            cost = self._rho_and_weight(torch.full_like(r[:1, :1, :1, :1], self.delta))[0]
+            value = (rho * (1.0 - hidden)).mean(dim=(1, 2, 3)) + (hidden * cost[0, 0]).mean(dim=(1, 2, 3))
         return torch.nan_to_num(value, nan=math.inf, posinf=math.inf)
 
     def _well_conditioned(self, H: torch.Tensor) -> torch.Tensor:
@@ -197,13 +266,18 @@ class PhotometricRefiner:
 
     # ------------------------------------------------------------------------------------- main
     @torch.no_grad()
-    def __call__(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor) -> RefineResult:
+    def __call__(self, queries: torch.Tensor, anchors: torch.Tensor, query_H_anchor: torch.Tensor,
+                 visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None,
+                 alternatives: torch.Tensor | None = None) -> RefineResult:
         """Refine a batch.
 
         Args:
             queries: ``(B, 3, H, W)`` query images.
             anchors: ``(B, 3, H, W)`` the selected anchor of each query.
             query_H_anchor: ``(B, 3, 3)`` pixel homographies (anchor pixel -> query pixel) to start from.
+            visibility: ``(B, 1, H, W)`` each query's visibility in [0, 1] (its mask); None: every pixel.
+            upscale: ``(B,)`` how many times each query's file was enlarged to the model's size (None: not known).
+            alternatives: ``(B, K, 3, 3)`` other unrefined pixel poses, kept where their loss is lowest.
         Returns:
             :class:`RefineResult` with float64 pixel homographies.
         """
@@ -212,25 +286,55 @@ class PhotometricRefiner:
                              f"{tuple(queries.shape)}, {tuple(anchors.shape)}, {tuple(query_H_anchor.shape)}")
         size = (int(queries.shape[-2]), int(queries.shape[-1]))
         queries, anchors = queries.float(), anchors.float()
+        if upscale is not None and self.match_upscale is not None:
+            anchors = self._at_query_resolution(anchors, upscale)
         if self.grayscale and queries.shape[1] == 3:
             luma = queries.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
             queries, anchors = (queries * luma).sum(1, keepdim=True), (anchors * luma).sum(1, keepdim=True)
+        visible = None
+        if visibility is not None and self.visibility and float(visibility.min()) < 1.0:
+            visible = visibility.to(queries.device, queries.dtype)
         H0 = pixel_to_normalised(query_H_anchor.double(), size)
         scale = self._query_scale(queries)
         q_pyr = self._pyramid(queries)
+        v_pyr = None if visible is None else self._pyramid(visible)
         a_pyr = [self._anchor_level(a) for a in self._pyramid(anchors)]
 
         H = H0.clone()
         for level in reversed(range(len(q_pyr))):  # coarsest first
-            H = self._refine_level(q_pyr[level], *a_pyr[level], H, scale)
+            H = self._refine_level(q_pyr[level], *a_pyr[level], H, scale, None if v_pyr is None else v_pyr[level])
 
         anchor, mask = a_pyr[0]
-        loss_before = self._loss(self._residuals(queries, anchor, mask, H0, scale)[1])
-        loss_after = self._loss(self._residuals(queries, anchor, mask, H, scale)[1])
-        accepted = (loss_after < loss_before) & self._well_conditioned(H)
-        loss_after = torch.where(accepted, loss_after, loss_before)
-        H_px = torch.where(accepted[:, None, None], normalised_to_pixel(H, size), query_H_anchor.double())
-        return RefineResult(H_px, loss_before, loss_after, accepted)
+        starts = [H0]  # the unrefined poses, normalised: the start first
+        if alternatives is not None:
+            starts += [pixel_to_normalised(alternatives[:, k].double().to(H0.device), size)
+                       for k in range(alternatives.shape[1])]
+
+        def loss_at(P: torch.Tensor) -> torch.Tensor:  # every pose on every pixel (a hidden one at a fixed cost)
+            _, r, seen = self._residuals(queries, anchor, mask, P, scale, visible=visible)
+            return self._loss(r, mask, seen)
+
+        losses = torch.stack([loss_at(P) for P in starts], 1)                      # (B, K + 1)
+        loss_after = loss_at(H)
+        best_loss, best = losses.min(1)  # the first of equals: the start before an alternative
+        accepted = (loss_after < best_loss) & self._well_conditioned(H)
+        pixel_starts = torch.stack([query_H_anchor.double(), *(normalised_to_pixel(P, size) for P in starts[1:])], 1)
+        kept = pixel_starts[torch.arange(len(best)), best]
+        H_px = torch.where(accepted[:, None, None], normalised_to_pixel(H, size), kept)
+        loss_after = torch.where(accepted, loss_after, best_loss)
+        source = torch.where(accepted, torch.zeros_like(best), best + 1)
+        return RefineResult(H_px, losses[:, 0], loss_after, accepted, source)
+
+    def _at_query_resolution(self, anchors: torch.Tensor, upscale: torch.Tensor) -> torch.Tensor:
+        """``anchors`` of queries enlarged more than ``match_upscale`` times brought to their query's resolution."""
+        size = max(int(anchors.shape[-2]), int(anchors.shape[-1]))
+        sides = [max(4, round(size / float(u))) if self.match_upscale is not None and float(u) > self.match_upscale
+                 else size for u in torch.as_tensor(upscale).tolist()]
+        out = anchors.clone()
+        for side in set(sides) - {size}:
+            rows = [i for i, s in enumerate(sides) if s == side]
+            out[rows] = at_resolution(anchors[rows], side)
+        return out
 
     @staticmethod
     def _jacobian(warped: torch.Tensor, scale: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
@@ -254,8 +358,9 @@ class PhotometricRefiner:
         return J.reshape(B, C * h * w, 8)
 
     def _refine_level(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
-                      scale: torch.Tensor) -> torch.Tensor:
-        """Levenberg-Marquardt / IRLS iterations at one level; returns the normalised ``H`` ``(B, 3, 3)``."""
+                      scale: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
+        """Levenberg-Marquardt / IRLS iterations at one level (``visible``: the queries' visibility at this level);
+        returns the normalised ``H`` ``(B, 3, 3)``."""
         B, C, h, w = query.shape
         grid = normalised_grid(h, w, query.device, query.dtype)                   # (3, h * w)
         corners = torch.tensor([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=torch.float64,
@@ -263,13 +368,16 @@ class PhotometricRefiner:
         half_size = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64, device=query.device)
         lam = torch.full((B,), self.damping, dtype=torch.float64, device=query.device)
         eye8 = torch.eye(8, dtype=torch.float64, device=query.device)
-        warped, r = self._residuals(query, anchor, mask, H, scale, grid)
-        loss = self._loss(r)
+        warped, r, seen = self._residuals(query, anchor, mask, H, scale, grid, visible)
+        loss = self._loss(r, mask, seen)
         A = g = None
         for _ in range(self.iterations):
             if A is None:  # the normal equations change only when some query moved
                 J = self._jacobian(warped, scale, grid)
-                Jw = J * self._rho_and_weight(r)[1].reshape(B, C * h * w, 1)
+                weight = self._rho_and_weight(r)[1]
+                if seen is not None:
+                    weight = weight * (1.0 - mask + mask * seen)
+                Jw = J * weight.reshape(B, C * h * w, 1)
                 A = (Jw.transpose(1, 2) @ J).double()                              # (B, 8, 8)
                 g = (Jw.transpose(1, 2) @ r.reshape(B, C * h * w, 1)).double()     # (B, 8, 1)
             damped = A + lam[:, None, None] * torch.diag_embed(torch.diagonal(A, dim1=1, dim2=2)) + 1e-9 * eye8
@@ -278,13 +386,15 @@ class PhotometricRefiner:
             update = _update_matrix(dp)
             candidate = H @ update
             candidate = candidate / candidate[:, 2:3, 2:3]
-            cand_warped, cand_r = self._residuals(query, anchor, mask, candidate, scale, grid)
-            cand_loss = self._loss(cand_r)
+            cand_warped, cand_r, cand_seen = self._residuals(query, anchor, mask, candidate, scale, grid, visible)
+            cand_loss = self._loss(cand_r, mask, cand_seen)
             better = cand_loss < loss                                              # per query
             if better.any():
                 H = torch.where(better[:, None, None], candidate, H)
                 warped = torch.where(better[:, None, None, None], cand_warped, warped)
                 r = torch.where(better[:, None, None, None], cand_r, r)
+                if seen is not None and cand_seen is not None:
+                    seen = torch.where(better[:, None, None, None], cand_seen, seen)
                 loss = torch.where(better, cand_loss, loss)
                 A = g = None
             lam = torch.where(better, lam * 0.1, lam * 10.0).clamp(1e-9, 1e9)
@@ -305,7 +415,8 @@ class RefinedRecognizer:
     recognition is unchanged, ``query_H_anchor`` and ``query_H_canon`` are replaced. Queries without
     a match (``gallery_index == -1``) or without a pose keep their prediction. A refiner whose ``start``
     is ``stn`` refines ``s()``'s pose: the recognizer's alignment stage (``model.align``), whose job the
-    refinement does, is skipped during the call.
+    refinement does, is skipped during the call, unless the refiner's ``compare_align`` asks for its pose as
+    well (then run after the search; the refiner keeps whichever of the three poses has the lowest loss).
 
     Args:
         recognizer: the wrapped callable; its ``gallery`` attribute is used unless ``gallery`` is given.
@@ -349,7 +460,11 @@ class RefinedRecognizer:
             self.recognizer.align = align
 
     @torch.no_grad()
-    def __call__(self, queries: torch.Tensor) -> Prediction:
+    def __call__(self, queries: torch.Tensor, visibility: torch.Tensor | None = None,
+                 upscale: torch.Tensor | None = None) -> Prediction:
+        """The refined prediction of ``queries`` ``(B, 3, S, S)``; ``visibility`` ``(B, 1, S, S)``: each query's
+        visibility in [0, 1] (its mask; None: every pixel), ``upscale`` ``(B,)``: how many times each query's
+        file was enlarged to the model's size (None: not known); both as the refiner takes them."""
         pred = self._recognize(queries)
         if pred.query_H_anchor is None:
             return pred
@@ -359,10 +474,18 @@ class RefinedRecognizer:
         every = len(index) == 0 or int(index.min()) >= 0  # the usual case: no query is left without an anchor
         safe = index if every else index.clamp_min(0)
         start = pred.query_H_anchor.to(device, torch.float64)
+        extra: dict[str, Any] = {}
+        if visibility is not None:
+            extra["visibility"] = visibility.to(device)
+        if upscale is not None:
+            extra["upscale"] = upscale
+        if self.skips_align and getattr(self.refiner, "compare_align", False) and pred.warped is not None:
+            aligned = self.recognizer.align.infer(queries, g.images[safe], pred.query_H_anchor, pred.warped)
+            extra["alternatives"] = aligned.query_H_anchor.to(device, torch.float64)[:, None]
         if self.templates is not None:
-            result = self.refiner(queries.to(device), safe, start, self.templates)
+            result = self.refiner(queries.to(device), safe, start, self.templates, **extra)
         else:
-            result = self.refiner(queries.to(device), g.images[safe], start)
+            result = self.refiner(queries.to(device), g.images[safe], start, **extra)
         self.last = result
         canon = g.anchor_H_canon64()
         if every:

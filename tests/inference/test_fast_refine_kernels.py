@@ -140,3 +140,112 @@ def test_count_above_counts_bright_pixels_inside_the_mask_as_opencv() -> None:
     expected = cv2.countNonZero(cv2.bitwise_and((image > 0.4).view(np.uint8), (mask > 0).view(np.uint8)))
     assert kernels.count_above(image, mask, 0.4) == expected > 0
     assert kernels.count_above(image, np.zeros_like(mask), 0.0) == 0
+
+
+def _weighted_reference(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray,
+                        region: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted objective written out: the print ``x = warped / visible`` on the foreground (where visible), gain
+    and bias the least squares of ``x`` by ``gain * image + bias`` over ``fg * visible``, the residuals' weights
+    ``u = 1 - fg + fg * visible`` and the hidden pixels ``fg * (1 - visible)`` (both times ``region``)."""
+    w, v, a, f = (x.astype(np.float64) for x in (warped, visible, image, fg))
+    x = np.where((f > 0) & (v >= 1e-3), w / np.maximum(v, 1e-3), w)
+    c = f * v
+    design = np.stack([a.ravel(), np.ones(a.size)], 1) * np.sqrt(c.ravel())[:, None]
+    gain, bias = np.linalg.lstsq(design, x.ravel() * np.sqrt(c.ravel()), rcond=None)[0]
+    u, hidden = 1.0 - f + f * v, f * (1.0 - v)
+    if region is not None:
+        u, hidden = u * region, hidden * region
+    return gain, x - gain * a - bias * f, u, hidden
+
+
+@pytest.mark.parametrize("loss", kernels.LOSS_CODES)
+@pytest.mark.parametrize("with_region", [False, True])
+def test_weighted_objective_is_the_visible_fit_and_the_weighted_loss(loss: str, with_region: bool) -> None:
+    warped, image, fg, region = _images()
+    visible = RNG.random((H_, W_), dtype=np.float32)
+    visible[RNG.random((H_, W_)) > 0.7] = 0.0  # hidden pixels
+    gain, r, u, hidden = _weighted_reference(warped, visible, image, fg, region if with_region else None)
+    delta = 0.05
+    total, out, fitted, weight = kernels.objective_weighted(warped, visible, image, fg, region, with_region,
+                                                            kernels.LOSS_CODES.index(loss), delta)
+    assert fitted == pytest.approx(gain, rel=1e-5)
+    np.testing.assert_allclose(out, r, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(weight, u, atol=1e-6)
+    # a hidden pixel costs rho(delta), whatever its residual
+    expected = (u * _rho(r, loss, delta)).sum() + hidden.sum() * float(_rho(np.array(delta), loss, delta))
+    assert total == pytest.approx(expected, rel=1e-4)
+    # everything visible: the unweighted objective, whose loss is a plain sum
+    ones = np.ones_like(visible)
+    count = fg.astype(np.float64).sum()
+    mean = (image * fg).sum() / count
+    var = (((image - mean) ** 2) * fg).sum()
+    plain = kernels.objective(warped, image, fg, region, with_region, mean, 1.0 / var, 1.0 / count,
+                              kernels.LOSS_CODES.index(loss), delta)
+    weighted = kernels.objective_weighted(warped, ones, image, fg, region, with_region,
+                                          kernels.LOSS_CODES.index(loss), delta)
+    assert weighted[0] == pytest.approx(plain[0], rel=1e-5) and weighted[2] == pytest.approx(plain[2], rel=1e-5)
+    # nothing of the foreground visible: no fit, an infinite loss (never accepted)
+    assert kernels.objective_weighted(warped, np.zeros_like(visible), image, fg, region, False, 1, delta)[0] == np.inf
+
+
+@pytest.mark.parametrize("loss", kernels.LOSS_CODES)
+def test_weighted_normal_equations_multiply_the_pixel_weight_into_the_robust_one(loss: str) -> None:
+    n = 40
+    r = RNG.standard_normal((H_, W_)).astype(np.float32)
+    u = RNG.random((H_, W_)).astype(np.float32)
+    u[RNG.random((H_, W_)) > 0.6] = 1.0  # most pixels fully weighted: the Hessian correction path
+    index = RNG.choice(H_ * W_, n, replace=False).astype(np.int32)
+    sdT = RNG.standard_normal((8, n)).astype(np.float32)
+    sd = sdT.astype(np.float64)
+    delta, gain = 0.8, 1.3
+    rs = r.ravel()[index].astype(np.float64)
+    a = np.abs(rs)
+    robust = {"l2": np.ones(n), "huber": np.minimum(1.0, delta / a), "cauchy": 1.0 / (1.0 + (rs / delta) ** 2)}[loss]
+    weights = robust * u.ravel()[index]
+    A, b = kernels.normal_equations_weighted(r, u, index, sdT, sd @ sd.T, gain, kernels.LOSS_CODES.index(loss), delta)
+    np.testing.assert_allclose(A, (sd * weights) @ sd.T, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(b, sd @ (weights * rs) / gain, rtol=1e-9, atol=1e-9)
+    # all weights 1: the unweighted equations
+    ones = np.ones_like(u)
+    plain = kernels.normal_equations(r, index, sdT, sd @ sd.T, gain, kernels.LOSS_CODES.index(loss), delta)
+    same = kernels.normal_equations_weighted(r, ones, index, sdT, sd @ sd.T, gain, kernels.LOSS_CODES.index(loss),
+                                             delta)
+    np.testing.assert_allclose(same[0], plain[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(same[1], plain[1], rtol=1e-12, atol=1e-12)
+
+
+def test_weighted_gradient_is_the_loss_derivative_in_float64() -> None:
+    """``-gain^2 b`` is the derivative of the weighted loss along the steepest-descent images (gain and bias held):
+    with ``r(p) = r - gain * sd^T p``, ``d/dp sum u rho(r(p)) = -gain sum u rho'(r) sd`` and ``b = sum u w r sd / gain``
+    with ``w r = rho'(r)``; checked by central differences in float64."""
+    n = H_ * W_
+    r = (0.3 * RNG.standard_normal((H_, W_))).astype(np.float32)
+    u = RNG.random((H_, W_)).astype(np.float32)
+    index = np.arange(n, dtype=np.int32)
+    sdT = RNG.standard_normal((8, n)).astype(np.float32)
+    gain, delta = 0.9, 0.25
+    for code, loss in enumerate(kernels.LOSS_CODES):
+        _, b = kernels.normal_equations_weighted(r, u, index, sdT, np.zeros((8, 8)), gain, code, delta)
+
+        def value(p: np.ndarray, code: int = code, loss: str = loss) -> float:
+            rp = r.ravel().astype(np.float64) - gain * (sdT.astype(np.float64).T @ p)
+            return float((u.ravel() * _rho(rp, loss, delta)).sum())
+
+        step = 1e-6
+        numeric = np.array([(value(step * e) - value(-step * e)) / (2 * step) for e in np.eye(8)])
+        np.testing.assert_allclose(numeric, -gain * gain * b, rtol=1e-5, atol=1e-7)
+
+
+def test_evaluate_weighted_is_the_weighted_objective_and_its_normal_equations() -> None:
+    warped, image, fg, region = _images()
+    visible = RNG.random((H_, W_), dtype=np.float32)
+    n = 30
+    index = RNG.choice(H_ * W_, n, replace=False).astype(np.int32)
+    sdT = RNG.standard_normal((8, n)).astype(np.float32)
+    hessian = sdT.astype(np.float64) @ sdT.T.astype(np.float64)
+    for code in range(len(kernels.LOSS_CODES)):
+        total, r, gain, weight = kernels.objective_weighted(warped, visible, image, fg, region, True, code, 0.05)
+        A, b = kernels.normal_equations_weighted(r, weight, index, sdT, hessian, gain, code, 0.05)
+        fused = kernels.evaluate_weighted(warped, visible, image, fg, region, True, index, sdT, hessian, code, 0.05)
+        assert fused[0] == total and fused[1] == gain
+        assert np.array_equal(fused[2], A) and np.array_equal(fused[3], b)

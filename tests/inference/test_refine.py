@@ -94,9 +94,49 @@ def test_refinement_never_makes_the_loss_worse() -> None:
 
 
 def test_refinement_options_are_checked() -> None:
-    for kwargs in ({"loss": "l1"}, {"levels": 0}, {"iterations": -1}, {"step": 0.0}, {"delta": 0.0}):
+    for kwargs in ({"loss": "l1"}, {"levels": 0}, {"iterations": -1}, {"step": 0.0}, {"delta": 0.0},
+                   {"match_upscale": 0.9}, {"visibility": "no"}):
         with pytest.raises(ValueError, match="refiner"):
             PhotometricRefiner(**kwargs)
+
+
+def test_what_the_mask_hides_costs_nothing_and_the_best_unrefined_pose_is_kept() -> None:
+    anchors, queries, true, start = scene(seed=2)
+    visibility = torch.ones(B, 1, S, S)
+    visibility[..., :, 24:34] = 0.0  # a bar cut out by each query's mask
+    masked = queries * visibility
+    refiner = PhotometricRefiner()
+    seen = refiner(masked, anchors, start, visibility=visibility)
+    assert float(corner_error_px(seen.query_H_anchor, true, (S, S)).max()) < 0.6
+    blind = refiner(masked, anchors, start)
+    assert float(corner_error_px(blind.query_H_anchor, true, (S, S)).median()) > 2.0
+    off = PhotometricRefiner(visibility=False)(masked, anchors, start, visibility=visibility)
+    assert torch.equal(off.query_H_anchor, blind.query_H_anchor)
+    # never worse: a far start refined without a step loses to a better unrefined pose given beside it
+    far = true.clone()
+    far[:, 0, 2] += 14.0
+    kept = PhotometricRefiner(iterations=0)(masked, anchors, far, visibility=visibility,
+                                            alternatives=torch.stack([far, true], 1))
+    assert kept.source.tolist() == [3] * B and torch.allclose(kept.query_H_anchor, true.double(), atol=1e-9)
+    assert not bool(kept.accepted.any()) and bool((kept.loss_after < kept.loss_before).all())
+    frozen = PhotometricRefiner(iterations=0)(queries, anchors, true, alternatives=far[:, None])
+    assert frozen.source.tolist() == [1] * B and torch.equal(frozen.query_H_anchor, true.double())
+
+
+def test_small_queries_are_compared_with_their_anchor_at_their_resolution() -> None:
+    from matl.inference.refine import at_resolution
+
+    anchors, queries, true, start = scene(seed=2)
+    small = at_resolution(queries, 25)  # a 25 px file enlarged to the model's 64 px
+    upscale = torch.full((B,), S / 25)
+    matched = PhotometricRefiner()(small, anchors, start, upscale=upscale)
+    sharp = PhotometricRefiner()(small, anchors, start)
+    error = corner_error_px(matched.query_H_anchor, true, (S, S))
+    assert float(error.max()) < 0.6 and float(error.mean()) < float(
+        corner_error_px(sharp.query_H_anchor, true, (S, S)).mean())
+    assert torch.equal(PhotometricRefiner(match_upscale=None)(small, anchors, start, upscale=upscale).query_H_anchor,
+                       sharp.query_H_anchor)
+    assert torch.equal(at_resolution(anchors, S), anchors)  # a file at least the model's size: nothing to do
 
 
 # ------------------------------------------------------------------------------ recognizer wrapper

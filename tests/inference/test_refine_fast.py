@@ -178,7 +178,9 @@ def test_refined_recognizer_precomputes_the_gallery_once_and_start_stn_skips_the
 def test_fast_refiner_options_are_one_line_errors() -> None:
     for kwargs in ({"loss": "l1"}, {"levels": 0}, {"iterations": -1}, {"iterations": [2, -1]}, {"delta": 0.0},
                    {"region": "all"}, {"start": "none"}, {"erode": -1}, {"threads": 0}, {"blur": -1.0},
-                   {"auto_band": -1}, {"auto_leak": -0.1}, {"auto_level": -1.0}, {"auto_from": "stn"}):
+                   {"auto_band": -1}, {"auto_leak": -0.1}, {"auto_level": -1.0}, {"auto_from": "stn"},
+                   {"compare_align": "yes"}, {"match_upscale": 0.5}, {"match_upscale": True}, {"cache": -1},
+                   {"visibility": 1}):
         with pytest.raises(MatlError, match="refiner"):
             FastRefiner(**kwargs)
     with pytest.raises(MatlError, match="prepare"):
@@ -233,3 +235,119 @@ def test_refined_matl_recognizer_composes_the_pose_once_and_an_unmatched_query_k
     assert torch.allclose(missing.query_H_canon[0].double(), compose_query_H_canon(
         plain.query_H_anchor[:1].double(), g.anchor_H_canon[:1].double())[0], atol=1e-6)
     assert torch.allclose(missing.query_H_canon[1:], out.query_H_canon[1:])
+
+
+def hidden_bar(queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``queries`` with a 10 px vertical bar cut out by their masks (0 there, as the foreground step leaves it), and
+    those masks ``(B, 1, S, S)``."""
+    visibility = torch.ones(len(queries), 1, S, S)
+    visibility[..., :, 24:34] = 0.0
+    return queries * visibility, visibility
+
+
+def test_what_the_mask_hides_costs_nothing() -> None:
+    anchors, queries, true, start = scene()
+    masked, visibility = hidden_bar(queries)
+    refiner = FastRefiner()
+    templates = refiner.anchor_templates(anchors)
+    index = torch.arange(B)
+    seen = refiner(masked, index, start, templates, visibility=visibility)
+    assert float(corner_error_px(seen.query_H_anchor, true, (S, S)).max()) < 0.6
+    # every pixel counted as it is: the cut-out print pulls the pose off
+    blind = refiner(masked, index, start, templates)
+    assert float(corner_error_px(blind.query_H_anchor, true, (S, S)).median()) > 5.0
+    off = FastRefiner(visibility=False)(masked, index, start, templates, visibility=visibility)
+    assert torch.equal(off.query_H_anchor, blind.query_H_anchor)
+    # a visibility of ones is the unweighted refinement
+    ones = refiner(queries, index, start, templates, visibility=torch.ones(B, 1, S, S))
+    assert torch.equal(ones.query_H_anchor, refiner(queries, index, start, templates).query_H_anchor)
+    with pytest.raises(MatlError, match="visibility"):
+        refiner(masked, index, start, templates, visibility=visibility[:, :, :-1])
+
+
+def test_never_worse_keeps_the_unrefined_pose_of_lowest_loss() -> None:
+    anchors, queries, true, start = scene()
+    refiner = FastRefiner()
+    templates = refiner.anchor_templates(anchors)
+    index = torch.arange(B)
+    # a start that is already optimal stays: nothing lowers its loss (0 at an integer shift), it comes back as it was
+    shift = torch.eye(3, dtype=torch.float64).repeat(B, 1, 1)
+    shift[:, 0, 2], shift[:, 1, 2] = 3.0, -2.0
+    shifted = warp_image(anchors, shift.float())
+    exact = refiner(shifted, index, shift, templates, alternatives=start[:, None])
+    assert torch.equal(exact.query_H_anchor, shift) and exact.source.tolist() == [1] * B
+    frozen = FastRefiner(iterations=0)(queries, index, true, templates, alternatives=start[:, None])
+    assert torch.equal(frozen.query_H_anchor, true.double()) and frozen.source.tolist() == [1] * B
+    assert not bool(frozen.accepted.any())
+    # a start far off, one step from it: it loses to a better unrefined pose given beside it
+    far = true.clone()
+    far[:, 0, 2] += 14.0
+    one = FastRefiner(iterations=1, region="frame")  # the whole frame: the outline keeps a step from far sane
+    frame = one.anchor_templates(anchors)
+    kept = one(queries, index, far, frame, alternatives=torch.stack([far, true], 1))
+    assert kept.source.tolist() == [3] * B and torch.equal(kept.query_H_anchor, true.double())
+    assert bool((kept.loss_after < kept.loss_before).all())
+    # refined from the far start it may not come back, but never ends above the best pose it was given
+    refined = refiner(queries, index, start, templates, alternatives=far[:, None])
+    assert bool((refined.loss_after <= refined.loss_before).all()) and 2 not in refined.source.tolist()
+    # the same with the queries' visibility: every pose is judged on the pixels all of them show
+    masked, visibility = hidden_bar(queries)
+    kept = one(masked, index, far, frame, visibility=visibility, alternatives=true[:, None])
+    assert kept.source.tolist() == [2] * B and torch.equal(kept.query_H_anchor, true.double())
+
+
+def test_small_queries_are_refined_against_their_anchor_at_their_resolution() -> None:
+    from matl.inference.refine import at_resolution
+
+    anchors, queries, true, start = scene()
+    small = at_resolution(queries, 25)  # a 25 px file enlarged to the model's 64 px
+    upscale = torch.full((B,), S / 25)
+    refiner = FastRefiner()
+    templates = refiner.anchor_templates(anchors)
+    index = torch.arange(B)
+    matched = refiner(small, index, start, templates, upscale=upscale)
+    assert float(corner_error_px(matched.query_H_anchor, true, (S, S)).max()) < 0.6
+    assert len(templates.resampled) == B and all(side == 25 for _, side in templates.resampled)
+    # against the sharp anchor the blurred query is pulled inwards
+    sharp = refiner(small, index, start, templates)
+    assert float(corner_error_px(sharp.query_H_anchor, true, (S, S)).min()) > 1.5
+    assert torch.equal(FastRefiner(match_upscale=None)(small, index, start, templates, upscale=upscale).query_H_anchor,
+                       sharp.query_H_anchor)
+    # at or below match_upscale the precomputed anchors serve; the kept ones are reused, the oldest dropped
+    below = FastRefiner(match_upscale=3.0)(small, index, start, templates, upscale=upscale)
+    assert torch.equal(below.query_H_anchor, sharp.query_H_anchor)
+    again = refiner(small, index, start, templates, upscale=upscale)
+    assert torch.equal(again.query_H_anchor, matched.query_H_anchor)
+    FastRefiner(cache=2)(small, index, start, templates, upscale=torch.full((B,), S / 30))
+    assert len(templates.resampled) == 2 and list(templates.resampled) == [(B - 2, 30), (B - 1, 30)]
+
+
+class StubAlign:
+    """An alignment stage whose pose is a given one per query."""
+
+    def __init__(self, H: torch.Tensor) -> None:
+        self.H, self.calls = H, 0
+
+    def infer(self, queries, anchors, query_H_anchor, warped=None):
+        self.calls += 1
+        return type("Out", (), {"query_H_anchor": self.H[: len(queries)].to(query_H_anchor.dtype)})()
+
+
+def test_compare_align_keeps_the_stage_pose_when_the_refinement_does_worse() -> None:
+    anchors, queries, true, _ = scene(seed=6)
+    n = len(anchors)
+    gallery = Gallery(anchors, torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
+                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
+                      [f"p{i}" for i in range(n)])
+    far = true.clone()
+    far[:, 1, 2] += 15.0  # s()'s pose: beyond the refinement's basin
+    recognizer = FixedRecognizer(gallery, torch.arange(n), far)
+    recognizer.align = StubAlign(true)  # the stage: right
+    plain = RefinedRecognizer(recognizer, FastRefiner(iterations=1))
+    compared = RefinedRecognizer(recognizer, FastRefiner(iterations=1, compare_align=True), templates=plain.templates)
+    assert plain.skips_align and compared.skips_align
+    without = plain(queries)
+    assert recognizer.align.calls == 0 and float(corner_error_px(without.query_H_anchor, true, (S, S)).min()) > 5.0
+    with_stage = compared(queries)
+    assert recognizer.align.calls == 1 and compared.last.source.tolist() == [2] * n
+    assert float(corner_error_px(with_stage.query_H_anchor, true, (S, S)).max()) < 1e-9
