@@ -19,7 +19,12 @@ near 1 when the product and the pose are right. The nearest anchor is verified f
 ZNCC`` exceeds ``verify_max`` the next-nearest anchors (up to ``verify_top_k``, any product, plane
 or rotation, each posed by the STN and the alignment stage) are tried in turn, and the first that
 verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays. The
-query's empty pixels (all channels 0: the transparent part of an RGBA query) are not compared.
+query's empty pixels (all channels 0: the transparent part of an RGBA query) are not compared. With
+``verify_statistic=patches`` (default) the comparison is over the part of the plane the query shows: its mask
+(an RGBA alpha, the foreground step's) travels with it as its visibility, warped by the pose, and an
+occluder the mask missed costs only the patches it covers; a pose that shows less than
+``verify_min_visible`` of the plane does not verify. The refinement weighs the query's pixels by the same
+visibility and knows how much each file was enlarged (:mod:`matl.inference.fast_refine`).
 
 Open set: a query whose statistic exceeds :attr:`Recognizer.threshold` is answered ``known=False``
 (``object`` None). The statistic (``open_set_statistic``) is ``verify`` (default): 0 when the
@@ -58,6 +63,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import threading
 import zlib
@@ -79,7 +85,7 @@ from matl.inference.gallery import build_gallery, enrol_gallery, report_skipped
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import RUNTIMES, runtime_path
-from matl.inference.verify import CandidatePose, Verification, verify_candidates
+from matl.inference.verify import VERIFY_STATISTICS, CandidatePose, Verification, verify_candidates
 from matl.models.checkpoint import (
     PRETRAINED,
     PRETRAINED_FAST,
@@ -305,6 +311,73 @@ def _with_rows(value: Any, rows: list[int], source: Any, source_rows: list[int])
         for f in dataclasses.fields(value) if getattr(value, f.name) is not None})
 
 
+def _query_visibility(prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], size: int, fill: float,
+                      device: torch.device) -> torch.Tensor | None:
+    """``(B, 1, S, S)`` float in [0, 1]: the mask each query prepared by :func:`mask_query` was multiplied by (the
+    foreground step's, or an RGBA query's alpha read back from its pixels), framed as the query is (0 where the
+    frame holds no file pixel); None when no query has a mask."""
+    masks: list[np.ndarray | None] = []
+    for masked, rgb, found in prepared:
+        if found is not None:
+            masks.append(found)
+        elif masked is rgb:  # used as given: no mask
+            masks.append(None)
+        else:  # masked = rgb * alpha; where a pixel is black its alpha is unknown (and it holds no data: 0)
+            peak = rgb.max(-1)
+            masks.append(np.where(peak > 0, masked.max(-1) / np.maximum(peak, 1e-12), 0.0).astype(np.float32))
+    if all(m is None for m in masks):
+        return None
+    framed = [fit_to_model(torch.from_numpy(np.ones(rgb.shape[:2], np.float32) if m is None else
+                                            np.clip(m, 0.0, 1.0).astype(np.float32))[None], size, fill)[0][:1]
+              for m, (_, rgb, _) in zip(masks, prepared, strict=True)]
+    return torch.stack(framed).to(device)
+
+
+#: ``verify_statistic=patches``: the calibration's copies ``j`` (of each plane's ``calibration_warps``) with ``j % 4``
+#: 1 get a grey bar drawn over them (a mask that kept the occluder), with ``j % 4`` 3 the bar's pixels set to 0 and
+#: out of the visibility (a mask that left it out); hidden share of the plane uniform in this range
+CALIBRATION_HIDDEN = (0.1, 0.5)
+
+
+def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The calibration's copies ``(P * W, 3, S, S)`` (plane-major, ``names`` one per plane) with a bar across half of
+    them (:data:`CALIBRATION_HIDDEN`), the copies' visibility ``(P * W, 1, S, S)`` and the rows changed.
+
+    A bar is a band across the whole frame at a random angle whose two edges are quantiles of the plane's pixels
+    projected on its normal, so it hides the drawn share of the plane; its grey level is uniform in [0.15, 0.85]
+    (drawn) or it is set to 0 (left out of the visibility). Seeded by each plane's name: the same copies each time.
+    """
+    per_plane = len(images) // max(len(names), 1)
+    out, visibility = images.clone(), torch.ones_like(images[:, :1])
+    S = images.shape[-1]
+    ys, xs = torch.meshgrid(torch.arange(S, dtype=torch.float64), torch.arange(S, dtype=torch.float64), indexing="ij")
+    rows = []
+    for p, name in enumerate(names):
+        g = torch.Generator().manual_seed(zlib.crc32(f"{name}/occluded".encode()))
+        for j in range(per_plane):
+            draws = torch.rand(4, generator=g, dtype=torch.float64)  # angle, hidden share, position, grey
+            if j % 2 == 0:
+                continue
+            row = p * per_plane + j
+            plane = images[row].amax(0) > 0
+            if int(plane.sum()) < 16:
+                continue
+            angle = float(draws[0]) * torch.pi
+            along = xs * np.cos(angle) + ys * np.sin(angle)
+            low, high = CALIBRATION_HIDDEN
+            share = low + (high - low) * float(draws[1])
+            start = float(draws[2]) * (1.0 - share)
+            edges = torch.quantile(along[plane], torch.tensor([start, start + share], dtype=torch.float64))
+            bar = ((along >= edges[0]) & (along <= edges[1])).to(images.device)
+            if j % 4 == 1:
+                out[row][:, bar] = 0.15 + 0.7 * float(draws[3])
+            else:
+                out[row][:, bar] = 0.0
+                visibility[row][:, bar] = 0.0
+            rows.append(row)
+    return out, visibility, torch.tensor(rows, dtype=torch.long)
+
+
 def calibrate_open_set(genuine: torch.Tensor, impostor: torch.Tensor, quantile: float) -> float:
     """The open-set threshold: the ``quantile`` quantile of the genuine statistics.
 
@@ -355,6 +428,13 @@ class Recognizer:
             data is computed once per gallery when first needed) rather than by the STN and alignment stage
             alone; with ``refine=false`` the nearest anchor is posed and verified again that way when its
             own pose does not verify. A re-ranked answer then carries the refined pose.
+        verify_statistic: ``patches`` (over the part of the anchor's plane the query shows, its mask warped
+            by the pose: the lower of ``1 - ZNCC`` over it and a strict trimmed mean of per-patch ``1 - ZNCC``, so
+            an occluder the mask missed costs only the patches it covers; half of the calibration's copies are
+            partly occluded too) or ``global`` (one ZNCC over the plane, every copy whole);
+            :mod:`matl.inference.verify`.
+        verify_min_visible: ``patches``: an answer whose pose shows less than this share of the anchor's plane
+            does not verify (judged by the ratio test).
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -372,8 +452,8 @@ class Recognizer:
                  search: str | SearchFactory | None = "exact", threshold: float | str | None = "auto",
                  open_set_statistic: str = "verify", open_set_quantile: float = 0.94, calibration_warps: int = 8,
                  verify_top_k: int = 8, verify_max: float = 0.1, verify_blur: float = 1.0,
-                 verify_refine: bool = True, gallery_fill: float = 1.0,
-                 query_fill: float = 1.0, batch_size: int = 64,
+                 verify_refine: bool = True, verify_statistic: str = "patches", verify_min_visible: float = 0.3,
+                 gallery_fill: float = 1.0, query_fill: float = 1.0, batch_size: int = 64,
                  foreground: str | ForegroundStep | None = "grabcut") -> None:
         if quantize not in ("none", "int8"):
             raise MatlError(f"quantize={quantize!r} is invalid: use none or int8")
@@ -403,6 +483,13 @@ class Recognizer:
         if not isinstance(verify_refine, bool):
             raise MatlError(f"verify_refine={verify_refine!r} is invalid: use true or false")
         self.verify_refine = verify_refine
+        if verify_statistic not in VERIFY_STATISTICS:
+            raise MatlError(f"verify_statistic={verify_statistic!r} is invalid: use {' or '.join(VERIFY_STATISTICS)}")
+        if (isinstance(verify_min_visible, bool) or not isinstance(verify_min_visible, (int, float))
+                or not 0.0 <= verify_min_visible <= 1.0):
+            raise MatlError(f"verify_min_visible={verify_min_visible!r} is invalid: use a share of the plane in [0, 1] "
+                            "(e.g. 0.3)")
+        self.verify_statistic, self.verify_min_visible = verify_statistic, float(verify_min_visible)
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = int(verify_top_k), float(verify_max), float(verify_blur)
@@ -673,9 +760,12 @@ class Recognizer:
         return self.verify_top_k > 0 and getattr(self.model, "stn", None) is not None
 
     def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                exclude_object: torch.Tensor | None = None) -> Verification:
+                exclude_object: torch.Tensor | None = None, visibility: torch.Tensor | None = None,
+                upscale: torch.Tensor | None = None) -> Verification:
         """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
-        queries' empty (all-zero: transparent) pixels are left out of the comparison."""
+        queries' empty (all-zero: transparent) pixels are left out of the comparison, and ``verify_statistic=patches``
+        weighs the rest by the queries' ``visibility`` ``(Q, 1, S, S)`` (None: ones); ``upscale`` ``(Q,)``: each file's
+        enlargement to the model's size, for the candidates' refinement."""
         inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
         pose = self._candidate_pose() if self.verify_refine else None
         first_refined = first is not None and self.refiner is not None
@@ -684,7 +774,10 @@ class Recognizer:
             chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
                                             self.verify_blur, part,
                                             None if exclude_object is None else exclude_object[i:i + step],
-                                            skip_empty=True, candidate_pose=pose, first_refined=first_refined))
+                                            skip_empty=True, candidate_pose=pose, first_refined=first_refined,
+                                            visibility=None if visibility is None else visibility[i:i + step],
+                                            upscale=None if upscale is None else upscale[i:i + step],
+                                            statistic=self.verify_statistic, min_visible=self.verify_min_visible))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 
@@ -708,14 +801,18 @@ class Recognizer:
         refined_answers = self.refiner is not None
         align = getattr(inner, "align", None)
 
-        def pose(queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor
+        def pose(queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor,
+                 visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor]:
             refiner, templates = self._candidate_refiner()
             network = stn_H  # the pose the recognizer gives without refinement: s(), then the alignment stage
-            if align is not None and (refiner.start == "align" or not refined_answers):
+            compare = refiner.compare_align and refiner.start == "stn"  # the stage's pose kept where its loss is lower
+            if align is not None and (refiner.start == "align" or not refined_answers or compare):
                 network = align.infer(queries, inner.gallery.images[index], stn_H, warped).query_H_anchor
             start = network if refiner.start == "align" else stn_H
-            refined = refiner(queries, index, start.double(), templates).query_H_anchor.to(stn_H.dtype)
+            others = network.double()[:, None] if compare and network is not stn_H else None
+            refined = refiner(queries, index, start.double(), templates, visibility=visibility, upscale=upscale,
+                              alternatives=others).query_H_anchor.to(stn_H.dtype)
             return refined, refined if refined_answers else network
 
         return pose
@@ -741,12 +838,21 @@ class Recognizer:
             # impostors against the gallery without their product); verify_or_ratio: the ratio's samples
             images = (self._calibration_images(self._planes)
                       if self.open_set_statistic == "verify" and self._verifying() else None)
+            visibility = None
+            if images is not None and self.verify_statistic == "patches":  # a share of the copies partly hidden
+                images, visibility, rows = _occluded_copies(images, [f"{p.object}/{p.name}" for p in self._planes])
+                inner = self._gallery_recognizer()
+                features = features.clone()
+                features[rows] = torch.cat([inner.embed_queries(images[rows[i:i + 256]])[0].float().cpu()
+                                            for i in range(0, len(rows), 256)])
+                d, objects = self._object_distances(features)
             ranked = d.sort(1).values
-            genuine_ok = None if images is None else self._verify(images).verified
+            genuine_ok = None if images is None else self._verify(images, visibility=visibility).verified
             genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
             impostor = torch.zeros(0, dtype=torch.float64)
             if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
-                impostor_ok = None if images is None else self._verify(images, None, own.to(self.device)).verified
+                impostor_ok = None if images is None else self._verify(images, None, own.to(self.device),
+                                                                       visibility=visibility).verified
                 others = d.scatter(1, own[:, None], float("inf")).sort(1).values
                 impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
             return {"genuine": genuine, "impostor": impostor}
@@ -786,8 +892,8 @@ class Recognizer:
         options = {"format": CALIBRATION_FORMAT, "model": self.model_id, "image_size": self.image_size,
                    "num_anchors": self.num_anchors, "statistic": self.open_set_statistic,
                    "warps": self.calibration_warps, "homography": getattr(self.model, "homography_config", None),
-                   "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine]
-                              if self._verifying() else None),
+                   "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine,
+                               self.verify_statistic, self.verify_min_visible] if self._verifying() else None),
                    "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
                    "search": self.options()["search"], "device": self.device.type, "variant": self._variant}
         return json.dumps(options, sort_keys=True, default=str) + "|planes:" + digest.hexdigest()
@@ -1026,12 +1132,15 @@ class Recognizer:
             fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
             queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
+        visibility = _query_visibility(prepared, self.image_size, self.query_fill, self.device)
+        upscale = (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).sqrt()  # model px per file px
         pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
-                                                [p[2] for p in prepared])
+                                                [p[2] for p in prepared], visibility, upscale)
         verification = None
         if self._verifying() and pred.query_H_anchor is not None:
             with stage(self.stage_timer, "verification"):
-                verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance))
+                verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance),
+                                            visibility=visibility, upscale=upscale)
                 pred = self._reranked(pred, verification)
         return pred, queries, query_H_file, verification
 
@@ -1086,11 +1195,15 @@ class Recognizer:
                                    distance=distance, query_H_anchor=query_H_anchor, query_H_canon=query_H_canon)
 
     def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
-                           found: list[np.ndarray | None]) -> tuple[Prediction, torch.Tensor]:
+                           found: list[np.ndarray | None], visibility: torch.Tensor | None = None,
+                           upscale: torch.Tensor | None = None) -> tuple[Prediction, torch.Tensor]:
         """The prediction of ``(B, 3, S, S)`` queries after the foreground step's pose passes, and the queries
         of the last pass: a query whose alpha came from the foreground step (``found[i]`` ``(H, W)``, None
         otherwise) is masked again by its answered plane warped by its pose, within that alpha
-        (:mod:`matl.inference.foreground`). Earlier passes skip the refinement."""
+        (:mod:`matl.inference.foreground`). Earlier passes skip the refinement, which weighs the query's pixels by
+        ``visibility`` ``(B, 1, S, S)`` and takes each file's enlargement ``upscale`` ``(B,)``."""
+        if isinstance(recognizer, RefinedRecognizer):
+            recognizer = functools.partial(recognizer, visibility=visibility, upscale=upscale)
         passes = 0 if self.foreground is None or all(f is None for f in found) else int(self.foreground.passes)
         if passes == 0:
             return recognizer(queries), queries

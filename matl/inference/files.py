@@ -202,7 +202,8 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
         threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
         open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
         verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
-        verify_refine=cfg.get("verify_refine", True),
+        verify_refine=cfg.get("verify_refine", True), verify_statistic=cfg.get("verify_statistic", "patches"),
+        verify_min_visible=cfg.get("verify_min_visible", 0.3),
         gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size),
         foreground=cfg.get("foreground"))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:

@@ -11,6 +11,22 @@ balance), 1 for a perfect match, about 0 for unrelated content. Both images are 
 Gaussian of ``blur_sigma`` px (a pose off by a pixel or two, and a query resampled from another
 scale, keep their correlation). The open-set statistic built on it is ``1 - ZNCC`` (lower: more
 alike), see :mod:`matl.inference.api`.
+
+Two statistics (``statistic``):
+
+* ``global``: one ZNCC over the anchor's whole plane where the query has data (the query's empty pixels left
+  out with ``skip_empty``), at least :data:`MIN_COVERAGE` of the plane covered.
+* ``patches``: over the part of the plane the query shows. The query's visibility in [0, 1] (its mask: an
+  RGBA alpha, the foreground step's; ones when none) is warped into the anchor frame with the same pose;
+  each pixel of the plane counts by it (times where the query has data). Two distances, the lower is the
+  statistic: ``1 - ZNCC`` over the visible plane (:func:`weighted_zncc`: with a 0/1 visibility ``global``'s own),
+  and a robust one: the anchor frame is cut into a grid of :data:`PATCH_CELLS` x :data:`PATCH_CELLS` patches;
+  a patch counts when at least :data:`PATCH_FILL` of it is visible plane and the anchor is textured there (std
+  at least :data:`PATCH_TEXTURE`), and gets its own ``1 - ZNCC``; the mean of the best :data:`PATCH_KEEP` of
+  them (a trimmed mean, with at least :data:`MIN_PATCHES` usable patches), times :data:`PATCH_STRICTNESS`, so an
+  occluder the mask missed costs only the patches it covers. A visible share of the plane below ``min_visible``
+  is not a comparison (1, uncorrelated): such an answer does not verify and is judged by the open set's ratio
+  test.
 """
 
 from __future__ import annotations
@@ -25,17 +41,35 @@ import torch.nn.functional as F
 
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
-__all__ = ["CandidatePose", "Verification", "aligned_queries", "anchor_foreground", "verification_distance",
-           "verify_candidates", "zncc"]
+__all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
+           "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
-#: ``pose(queries, gallery_index, stn_H, warped) -> (query_H_anchor verified, query_H_anchor an answer carries)``
-#: of candidates (:func:`verify_candidates`)
-CandidatePose = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+#: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
+#: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
+CandidatePose = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None,
+                          torch.Tensor | None], tuple[torch.Tensor, torch.Tensor]]
 
+#: the statistics of :func:`verification_distance` (``verify_statistic``)
+VERIFY_STATISTICS = ("patches", "global")
 #: smallest foreground (pixels) a comparison needs; below it the pair counts as unrelated (ZNCC 0)
 MIN_PIXELS = 16
 #: smallest share of the anchor's plane a comparison must cover with query data (docs/decisions.md)
 MIN_COVERAGE = 0.5
+#: ``patches``: the anchor frame is cut into this many patches per side (docs/decisions.md)
+PATCH_CELLS = 8
+#: ``patches``: a patch counts when at least this share of its pixels is visible plane ...
+PATCH_FILL = 0.5
+#: ... and the anchor's std over them (blurred, channels pooled) is at least this (of 1)
+PATCH_TEXTURE = 0.02
+#: ``patches``: the share of the usable patches, best first, whose ``1 - ZNCC`` is averaged
+PATCH_KEEP = 0.5
+#: ``patches``: fewest usable patches the patches' part needs (a smaller plane is judged by its ZNCC alone)
+MIN_PATCHES = 6
+#: ``patches``: the patches' trimmed mean counts this many times over (it must be this much lower than ``verify_max``:
+#: the best half of a plane's patches can match another product's that shares its layout)
+PATCH_STRICTNESS = 3.5
+#: ``patches``: smallest visible share of the anchor's plane a comparison needs (``verify_min_visible``)
+MIN_VISIBLE = 0.3
 
 
 def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
@@ -51,23 +85,26 @@ def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
     return mask > 0.5
 
 
-def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor,
-                    skip_empty: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """The queries in their anchors' frames: ``(warped (B, 3, S, S), valid (B, 1, S, S) bool)``.
+def aligned_queries(queries: torch.Tensor, query_H_anchor: torch.Tensor, skip_empty: bool = False,
+                    visibility: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The queries in their anchors' frames: ``(warped (B, 3, S, S), valid (B, 1, S, S) bool, seen)``.
 
     Args:
         queries: ``(B, 3, S, S)`` model-size query images.
         query_H_anchor: ``(B, 3, 3)`` pixel homographies, anchor pixel -> query pixel.
         skip_empty: also count as invalid what comes from query pixels that are 0 in every channel (the
             transparent part of an RGBA query, set to 0 when it was read: no data, not black print).
+        visibility: ``(B, 1, S, S)`` the queries' visibility in [0, 1] (their masks), or None.
     Returns:
-        ``warped(x) = query(query_H_anchor @ x)`` and where that point lies inside the query (and, with
-        ``skip_empty``, only among non-empty pixels).
+        ``warped(x) = query(query_H_anchor @ x)``, where that point lies inside the query (and, with
+        ``skip_empty``, only among non-empty pixels), and the visibility warped alike ``(B, 1, S, S)`` (0 outside
+        the query; None without ``visibility``).
     """
     query_H_anchor_norm = pixel_to_normalised(query_H_anchor.double(), tuple(queries.shape[-2:]))
     data = (queries.amax(1, keepdim=True) > 0).to(queries.dtype) if skip_empty else torch.ones_like(queries[:, :1])
-    warped = sample_by_normalised(torch.cat([queries, data], 1), query_H_anchor_norm)
-    return warped[:, :3], warped[:, 3:] > 0.999
+    parts = [queries, data] if visibility is None else [queries, data, visibility.to(queries.device, queries.dtype)]
+    warped = sample_by_normalised(torch.cat(parts, 1), query_H_anchor_norm)
+    return warped[:, :3], warped[:, 3:4] > 0.999, None if visibility is None else warped[:, 4:5].clamp(0.0, 1.0)
 
 
 @lru_cache(maxsize=8)
@@ -114,9 +151,78 @@ def zncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, num / den.clamp_min(1e-12), torch.zeros_like(num))
 
 
+def patch_distances(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, cells: int = PATCH_CELLS,
+                    fill: float = PATCH_FILL, texture: float = PATCH_TEXTURE) -> torch.Tensor:
+    """``1 - ZNCC`` of ``a`` and ``b`` in each patch of a ``cells`` x ``cells`` grid, pixels weighted by ``weight``.
+
+    Each patch's ZNCC is :func:`zncc`'s over its pixels (weighted means per channel, channels pooled). A patch
+    whose weights sum to less than ``fill`` of its area, or whose ``a`` has a (weighted, channels pooled) std
+    below ``texture``, is not usable (NaN); one where ``b`` is flat gets ZNCC 0.
+
+    Args:
+        a: ``(B, C, H, W)`` the reference (the anchor); b: ``(B, C, H, W)`` the other (the warped query);
+        weight: ``(B, 1, H, W)`` in [0, 1].
+    Returns:
+        ``(B, cells * cells)`` float64, NaN where a patch is not usable.
+    """
+    count, var_a, corr, area = _cell_correlations(a, b, weight, cells)
+    usable = (count >= fill * area) & (var_a >= texture * texture * a.shape[1] * count)
+    return torch.where(usable, 1.0 - corr, torch.full_like(corr, float("nan"))).flatten(1)
+
+
+def weighted_zncc(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` float64 ZNCC of ``a`` and ``b`` ``(B, C, H, W)`` with pixels weighted by ``weight`` ``(B, 1, H, W)``
+    (weighted means per channel, channels pooled: :func:`zncc`'s with a 0/1 weight); 0 where the weights sum to
+    fewer than :data:`MIN_PIXELS` or an image is flat."""
+    count, var_a, corr, _ = _cell_correlations(a, b, weight, 1)
+    ok = (count >= MIN_PIXELS) & (var_a > 1e-12)
+    return torch.where(ok, corr, torch.zeros_like(corr)).flatten(1)[:, 0]
+
+
+def _cell_correlations(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, cells: int
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """Per cell of a ``cells`` x ``cells`` grid over ``(B, C, H, W)`` images: ``(weight sum, a's weighted sum of
+    squared deviations (channels pooled), the weighted correlation (0 where b is flat), the cell's area)``, each
+    ``(B, cells, cells)`` float64."""
+    B, C, H, W = a.shape
+    side = -(-max(H, W) // cells)  # cells of side px cover the frame; the last row and column may be short
+    pad = (0, cells * side - W, 0, cells * side - H)
+    m = F.pad(weight.double(), pad)
+    a, b = F.pad(a.double(), pad), F.pad(b.double(), pad)
+    area = float(side * side)
+
+    def total(x: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(x, side) * area                      # (B, C', cells, cells) sums per cell
+
+    count = total(m)[:, 0]                                        # (B, cells, cells)
+    sums = total(torch.cat([m * a, m * b, m * a * a, m * b * b, m * a * b], 1)).view(B, 5, C, cells, cells)
+    n = count.clamp_min(1e-9)[:, None]
+    sa, sb, saa, sbb, sab = sums.unbind(1)                        # (B, C, cells, cells)
+    var_a = (saa - sa * sa / n).sum(1).clamp_min(0.0)
+    var_b = (sbb - sb * sb / n).sum(1).clamp_min(0.0)
+    cov = (sab - sa * sb / n).sum(1)
+    den = (var_a * var_b).sqrt()
+    textured_b = var_b > 1e-10 * C * count  # a std of 1e-5 is rounding, not texture
+    corr = torch.where(textured_b & (den > 0), cov / den.clamp_min(1e-300), torch.zeros_like(cov))
+    return count, var_a, corr, area
+
+
+def _trimmed(distances: torch.Tensor, keep: float, least: int) -> torch.Tensor:
+    """``(B,)`` the mean of the lowest ``keep`` share (at least one) of each row's finite values; 1 for a row with
+    fewer than ``least`` of them."""
+    finite = torch.isfinite(distances)
+    usable = finite.sum(1)
+    ranked = torch.where(finite, distances, torch.full_like(distances, float("inf"))).sort(1).values
+    k = (usable.double() * keep).ceil().long().clamp_min(1)
+    take = torch.arange(ranked.shape[1], device=ranked.device)[None, :] < k[:, None]
+    mean = torch.where(take, ranked, torch.zeros_like(ranked)).sum(1) / k
+    return torch.where(usable >= least, mean, torch.ones_like(mean))
+
+
 def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
                           blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False,
-                          min_coverage: float = MIN_COVERAGE) -> torch.Tensor:
+                          min_coverage: float = MIN_COVERAGE, visibility: torch.Tensor | None = None,
+                          statistic: str = "global", min_visible: float = MIN_VISIBLE) -> torch.Tensor:
     """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
 
     Args:
@@ -125,21 +231,37 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         blur_sigma: Gaussian smoothing of both images before the comparison, px (0: none).
         erode: the anchor's foreground is eroded by this many px.
         skip_empty: leave out what comes from the query's empty (all-zero) pixels (:func:`aligned_queries`).
-        min_coverage: the share of the anchor's (eroded) foreground the compared pixels must cover; a pose that
-            puts most of the anchor over no query data is not compared (1, uncorrelated): a few pixels can
-            correlate by chance.
+        min_coverage: ``global``: the share of the anchor's (eroded) foreground the compared pixels must cover;
+            a pose that puts most of the anchor over no query data is not compared (1, uncorrelated): a few
+            pixels can correlate by chance.
+        visibility: ``(B, 1, S, S)`` the queries' visibility in [0, 1] (``patches``; None: ones).
+        statistic: ``global`` (one ZNCC over the plane) or ``patches`` (over the visible part, a trimmed mean of
+            per-patch ``1 - ZNCC``); see the module docstring.
+        min_visible: ``patches``: the smallest visible share of the anchor's plane that is compared.
     Returns:
         ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
     """
+    if statistic not in VERIFY_STATISTICS:
+        raise ValueError(f"statistic must be one of {', '.join(VERIFY_STATISTICS)}, got {statistic!r}")
     if len(queries) == 0:
         return torch.zeros(0, dtype=torch.float64)
-    warped, valid = aligned_queries(queries.float(), query_H_anchor.to(queries.device), skip_empty)
+    patches = statistic == "patches"
+    warped, valid, seen = aligned_queries(queries.float(), query_H_anchor.to(queries.device), skip_empty,
+                                          visibility if patches else None)
     anchors = anchors.float()
     plane = anchor_foreground(anchors, erode)
-    mask = plane & valid
-    covered = mask.sum((1, 2, 3)) >= min_coverage * plane.sum((1, 2, 3))
+    if patches:
+        weight = (plane & valid).float() if seen is None else (plane & valid).float() * seen
+        enough = weight.sum((1, 2, 3)) >= min_visible * plane.sum((1, 2, 3)).clamp_min(1)
+    else:
+        mask = plane & valid
+        covered = mask.sum((1, 2, 3)) >= min_coverage * plane.sum((1, 2, 3))
     if blur_sigma > 0:  # one call for both
         warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
+    if patches:
+        whole = 1.0 - weighted_zncc(warped, anchors, weight)
+        robust = _trimmed(patch_distances(anchors, warped, weight), PATCH_KEEP, MIN_PATCHES) * PATCH_STRICTNESS
+        return torch.where(enough, torch.minimum(whole, robust), torch.ones_like(whole)).cpu()
     return (1.0 - zncc(warped, anchors, mask).masked_fill(~covered, 0.0)).cpu()
 
 
@@ -169,7 +291,9 @@ class Verification:
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                       exclude_object: torch.Tensor | None = None, skip_empty: bool = False,
-                      candidate_pose: CandidatePose | None = None, first_refined: bool = True) -> Verification:
+                      candidate_pose: CandidatePose | None = None, first_refined: bool = True,
+                      visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None,
+                      statistic: str = "global", min_visible: float = MIN_VISIBLE) -> Verification:
     """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
@@ -192,12 +316,16 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
             None: the nearest candidate comes from the search here.
         exclude_object: ``(Q,)`` object index per query whose anchors are not candidates (the open-set
             calibration's impostors), or None.
-        candidate_pose: ``(queries (T, 3, S, S), gallery_index (T,), stn_H (T, 3, 3), warped (T, 3, S, S))
-            -> (verified (T, 3, 3), answer (T, 3, 3))``: the candidates' poses that are verified
-            (``verify_refine``: the fast refinement against each candidate) and those an answer carries
-            (the same, or the networks' pose when answers are not refined); None: the STN's, then the
-            alignment stage's, for both.
+        candidate_pose: ``(queries (T, 3, S, S), gallery_index (T,), stn_H (T, 3, 3), warped (T, 3, S, S),
+            visibility (T, 1, S, S) or None, upscale (T,) or None) -> (verified (T, 3, 3), answer (T, 3, 3))``: the
+            candidates' poses that are verified (``verify_refine``: the fast refinement against each candidate)
+            and those an answer carries (the same, or the networks' pose when answers are not refined); None:
+            the STN's, then the alignment stage's, for both.
         first_refined: whether ``first``'s pose was already refined (then the nearest is not posed again).
+        visibility: ``(Q, 1, S, S)`` the queries' visibility in [0, 1] (their masks), or None (ones).
+        upscale: ``(Q,)`` how many times each query's file was enlarged to the model's size, for
+            ``candidate_pose`` (None: not known).
+        statistic, min_visible: as :func:`verification_distance`'s.
     """
     g = recognizer.gallery
     n = len(queries)
@@ -213,12 +341,16 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     # copies: the answer is changed in place below, the caller's tensors (the prediction's) must stay as they are
     index, pose = first[0].cpu().long().clone(), first[1].cpu().double().clone()
     feature_distance = first[2].cpu().double().clone()
-    distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma, skip_empty=skip_empty)
+    compare = {"skip_empty": skip_empty, "statistic": statistic, "min_visible": min_visible}
+    distance = verification_distance(queries, first[1], g.images[first[0]], blur_sigma, visibility=visibility,
+                                     **compare)
     tried = torch.ones(n, dtype=torch.long)
     todo = torch.nonzero(distance > verify_max).flatten()
     if len(todo) == 0 or top_k <= 1:
         return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
     x = queries[todo]
+    seen = None if visibility is None else visibility[todo.to(visibility.device)]
+    factor = None if upscale is None else torch.as_tensor(upscale)[todo]
     if embedded is None:
         _, stn_H, warped, d = _candidate_distances(recognizer, x, None if exclude_object is None else
                                                    exclude_object[todo])
@@ -234,12 +366,13 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     anchors = g.images[cand[t, j]]
     H = stn_H[t]
     answer_H = None  # the pose an answer carries, when not the verified one
+    seen_t = None if seen is None else seen[t.to(seen.device)]
     if candidate_pose is not None:
-        H, answer_H = candidate_pose(x[t], cand[t, j], H, warped[t])
+        H, answer_H = candidate_pose(x[t], cand[t, j], H, warped[t], seen_t, None if factor is None else factor[t])
     elif getattr(recognizer, "align", None) is not None:
         H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
     v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
-    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, skip_empty=skip_empty)
+    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, visibility=seen_t, **compare)
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
     poses[t, j] = (H if answer_H is None else answer_H).cpu().double()
     ok = v <= verify_max

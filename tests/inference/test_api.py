@@ -351,3 +351,85 @@ def test_grey_queries_are_matched_against_the_grey_twins_of_the_planes(tmp_path:
     assert [m.distance for m in batch] == pytest.approx([rec.predict(colour).distance, answer.distance,
                                                          rec.predict(queries / "blue_card.png").distance])
     assert batch[0].object == "red_box" and batch[2].object == "blue_card"
+
+
+def test_the_query_mask_travels_with_the_query_as_its_visibility() -> None:
+    from matl.inference.api import _query_visibility
+    from matl.inference.foreground import GrabCutForeground, mask_query
+
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(0.2, 1.0, (30, 20, 3)).astype(np.float32)
+    alpha = np.ones((30, 20), np.float32)
+    alpha[:, 5:9] = 0.0
+    alpha[:, 9] = 0.5  # a soft edge
+    rgba = np.concatenate([rgb, alpha[..., None]], -1)
+    plain = mask_query(None, rgb)
+    assert _query_visibility([plain], SIZE, 1.0, torch.device("cpu")) is None  # no mask: ones everywhere
+    seen = _query_visibility([mask_query(None, rgba), plain], SIZE, 1.0, torch.device("cpu"))
+    framed = torch.from_numpy(alpha)[None]
+    from matl.data.image_files import fit_to_model
+
+    expected = fit_to_model(framed, SIZE, 1.0)[0][:1]
+    assert seen.shape == (2, 1, SIZE, SIZE) and torch.allclose(seen[0], expected, atol=1e-6)  # the alpha read back
+    ones = fit_to_model(torch.ones_like(framed), SIZE, 1.0)[0][:1]
+    assert torch.equal(seen[1], ones)  # a query without a mask beside one with it: ones where the file is
+    assert float(ones[:, :, :8].max()) == 0.0 and float(ones.max()) == 1.0  # the frame's padding holds no pixel
+    # the foreground step's mask is the visibility of an RGB query
+    step = GrabCutForeground(retry_insets=())
+    crop = np.zeros((40, 40, 3), np.float32)
+    crop[10:30, 12:28] = rgb[:20, :16]
+    found = mask_query(step, crop)
+    assert found[2] is not None
+    assert torch.allclose(_query_visibility([found], SIZE, 1.0, torch.device("cpu"))[0],
+                          fit_to_model(torch.from_numpy(found[2])[None], SIZE, 1.0)[0][:1])
+
+
+def test_an_occluded_query_verifies_on_what_it_shows(tmp_path: Path) -> None:
+    gallery, queries, pose = easy_files(tmp_path)
+    query = read_rgb(queries / "red_box.png")
+    other = read_rgb(queries / "blue_card.png")
+    covered = query.copy()
+    covered[:, 60:90] = other[:, 60:90]  # another product's print across the crop, kept by the mask
+    options = {"threshold": None, "foreground": "none", "verify_max": 0.2}  # 6 px patches at 48 px: a looser level
+    visible = Recognizer(StubModel(pose), SIZE, 1, "stub-model", **options).enrol(gallery)
+    whole = Recognizer(StubModel(pose), SIZE, 1, "stub-model", verify_statistic="global", **options).enrol(gallery)
+    assert visible.verify_statistic == "patches"  # the default
+    seen, judged_whole = visible.predict(covered), whole.predict(covered)
+    assert seen.object == judged_whole.object == "red_box"
+    assert seen.verification <= visible.verify_max < judged_whole.verification
+    # an RGBA query whose alpha leaves the occluder out shows too little when the bar is most of the product
+    alpha = np.full((*query.shape[:2], 1), 255, np.uint8)
+    alpha[:, 20:130] = 0
+    hidden = visible.predict(np.concatenate([query, alpha], -1))
+    assert hidden.verification == 1.0
+    lenient = Recognizer(StubModel(pose), SIZE, 1, "stub-model", verify_min_visible=0.0, **options).enrol(gallery)
+    assert lenient.predict(np.concatenate([query, alpha], -1)).verification < 1.0
+    for bad in ({"verify_statistic": "median"}, {"verify_min_visible": 1.5}, {"verify_min_visible": True}):
+        with pytest.raises(MatlError, match=next(iter(bad))):
+            stub_recognizer(**bad)
+
+
+def test_the_calibration_copies_are_partly_occluded() -> None:
+    from matl.inference.api import CALIBRATION_HIDDEN, _occluded_copies
+
+    S, W = 32, 8
+    images = torch.zeros(2 * W, 3, S, S)
+    images[:, :, 6:26, 4:28] = torch.rand(2 * W, 3, 20, 24, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
+    out, visibility, rows = _occluded_copies(images, ["a/front", "b/back"])
+    assert rows.tolist() == [j for j in range(2 * W) if j % 2 == 1]  # half of each plane's copies
+    again = _occluded_copies(images, ["a/front", "b/back"])
+    assert torch.equal(again[0], out) and torch.equal(again[1], visibility)  # seeded by the planes' names
+    plane = images[0].amax(0) > 0
+    for row in range(2 * W):
+        changed = (out[row] != images[row]).any(0)
+        if row % 2 == 0:
+            assert not bool(changed.any()) and float(visibility[row].min()) == 1.0
+            continue
+        share = float((changed & plane).sum() / plane.sum())
+        low, high = CALIBRATION_HIDDEN
+        assert low - 0.05 <= share <= high + 0.05
+        if row % 4 == 1:  # drawn grey: seen (a mask that kept the occluder)
+            assert float(visibility[row].min()) == 1.0 and float(out[row][:, changed].std()) < 1e-6
+        else:             # cut out: 0 and not seen
+            assert float(out[row][:, changed].abs().max()) == 0.0
+            assert bool((visibility[row][0][changed] == 0).all()) and float(visibility[row].max()) == 1.0

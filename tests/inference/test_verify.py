@@ -1,4 +1,5 @@
-"""Photometric verification: hand-computed ZNCC, ``1 - ZNCC`` of posed queries, candidates tried in order."""
+"""Photometric verification: hand-computed ZNCC, ``1 - ZNCC`` of posed queries (over the whole plane and over the
+visible part, patch by patch), candidates tried in order."""
 
 from __future__ import annotations
 
@@ -9,11 +10,16 @@ import pytest
 import torch
 
 from matl.inference.verify import (
+    MIN_PATCHES,
     MIN_PIXELS,
+    PATCH_CELLS,
     aligned_queries,
     anchor_foreground,
+    gaussian_blur,
+    patch_distances,
     verification_distance,
     verify_candidates,
+    weighted_zncc,
     zncc,
 )
 
@@ -67,9 +73,15 @@ def test_foreground_and_aligned_queries() -> None:
     anchor = textured(0)
     assert int(anchor_foreground(anchor, 0).sum()) == (S - 8) ** 2
     assert int(anchor_foreground(anchor, 1).sum()) == (S - 10) ** 2     # eroded by one pixel on each side
-    warped, valid = aligned_queries(anchor.float(), shift(3.0, 0.0))  # query = anchor shifted right by 3 px
-    assert not bool(valid[0, 0, :, -3:].any()) and bool(valid[0, 0, :, :-3].all())
+    warped, valid, seen = aligned_queries(anchor.float(), shift(3.0, 0.0))  # query = anchor shifted right by 3 px
+    assert not bool(valid[0, 0, :, -3:].any()) and bool(valid[0, 0, :, :-3].all()) and seen is None
     assert torch.allclose(warped[0, :, :, :-3], anchor[0, :, :, 3:].float(), atol=1e-5)
+    # the visibility travels with the pixels: the query's left half hidden is the anchor's columns up to S / 2 - 3
+    visibility = torch.ones(1, 1, S, S)
+    visibility[..., : S // 2] = 0.0
+    _, _, seen = aligned_queries(anchor.float(), shift(3.0, 0.0), visibility=visibility)
+    assert float(seen[0, 0, :, : S // 2 - 3].max()) == 0.0 and float(seen[0, 0, :, S // 2 - 3:-3].min()) == 1.0
+    assert float(seen[0, 0, :, -3:].max()) == 0.0  # beyond the query's frame: nothing seen
 
 
 def test_verification_distance_by_hand() -> None:
@@ -142,15 +154,18 @@ def test_a_given_answer_is_not_changed_in_place_and_candidate_poses_are_used() -
     carried[0, 2] = 5.0
     seen: list[list[int]] = []
 
-    def pose(x: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor):
+    def pose(x: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor,
+             visibility: torch.Tensor | None, upscale: torch.Tensor | None):
         seen.append(index.tolist())
+        assert visibility is None and upscale is not None and upscale.tolist() == [2.0] * len(index)
         return stn_H, carried.expand_as(stn_H)
 
-    v = verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=False)
+    twice = torch.tensor([2.0])  # each query's file enlargement goes to the candidates' poses
+    v = verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=False, upscale=twice)
     assert seen == [[0, 1, 2]]  # the nearest is posed again with the others
     assert v.gallery_index.tolist() == [2] and torch.equal(v.query_H_anchor[0], carried.double())
     seen.clear()
-    verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=True)
+    verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=True, upscale=twice)
     assert seen == [[1, 2]]
 
 
@@ -162,3 +177,108 @@ def test_a_pose_that_puts_the_plane_over_no_query_data_is_not_compared() -> None
     assert float(full[0]) == pytest.approx(0.0, abs=1e-6)  # the third that is there matches exactly ...
     covered = verification_distance(query, torch.eye(3)[None], anchor, blur_sigma=0.0, skip_empty=True)
     assert float(covered[0]) == 1.0  # ... but covers less than half the plane: not a verification
+
+
+def test_patch_distances_by_hand() -> None:
+    """A 2 x 2 grid of 4 x 4 px patches: each patch is ZNCC'd on its own, flat or hidden patches are not usable."""
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(1, 2, 8, 8, generator=g, dtype=torch.float64)
+    b = 3.0 * a + 0.5                                      # top left: b explains a up to gain and bias
+    b[..., :4, 4:] = torch.rand(1, 2, 4, 4, generator=g, dtype=torch.float64)  # top right: unrelated
+    a[..., 4:, :4] = 0.4                                   # bottom left: the anchor is flat there
+    weight = torch.ones(1, 1, 8, 8, dtype=torch.float64)
+    weight[..., 4:, 4:] = 0.0
+    weight[..., 4:, 4:6] = 1.0                             # bottom right: half of it visible (8 of 16 pixels)
+    d = patch_distances(a, b, weight, cells=2, fill=0.6, texture=0.02)
+    assert float(d[0, 0]) == pytest.approx(0.0, abs=1e-12)
+    expected = 1.0 - float(zncc(a[..., :4, 4:], b[..., :4, 4:], torch.ones(1, 1, 4, 4, dtype=torch.bool))[0])
+    assert float(d[0, 1]) == pytest.approx(expected, abs=1e-12)
+    assert math.isnan(float(d[0, 2])) and math.isnan(float(d[0, 3]))  # flat anchor; too little visible (0.5 < 0.6)
+    assert float(patch_distances(a, b, weight, cells=2, fill=0.5)[0, 3]) == pytest.approx(0.0, abs=1e-12)
+    # a flat query patch over a textured anchor explains nothing: 1 - 0
+    flat = b.clone()
+    flat[..., :4, :4] = 0.3
+    assert float(patch_distances(a, flat, weight, cells=2)[0, 0]) == 1.0
+    # a soft weight is the weighted correlation: sum w a' b' / sqrt(sum w a'^2 sum w b'^2), means weighted per channel
+    soft = torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64) * 0.5 + 0.5
+    w = soft.numpy()[0, 0]
+    da = [x - (w * x).sum() / w.sum() for x in a.numpy()[0]]
+    db = [x - (w * x).sum() / w.sum() for x in b.numpy()[0]]
+    num = sum((w * x * y).sum() for x, y in zip(da, db, strict=True))
+    den = math.sqrt(sum((w * x * x).sum() for x in da) * sum((w * y * y).sum() for y in db))
+    assert float(patch_distances(a, b, soft, cells=1)[0, 0]) == pytest.approx(1.0 - num / den, abs=1e-12)
+
+
+def occluded(anchor: torch.Tensor, start: int, stop: int, fill: torch.Tensor | float) -> torch.Tensor:
+    """``anchor`` with the columns ``start:stop`` replaced by ``fill`` (a bar across the plane)."""
+    query = anchor.clone()
+    query[..., :, start:stop] = fill if isinstance(fill, float) else fill[..., :, start:stop]
+    return query
+
+
+def test_an_occluded_query_whose_visible_part_matches_verifies_and_a_wrong_product_does_not() -> None:
+    anchor = textured(1, 64).float()
+    other = textured(5, 64).float()
+    pose = torch.eye(3)[None]
+    # another product's print across a third of the plane, left in the query (a mask that missed the occluder)
+    query = occluded(anchor, 24, 40, other)
+    whole = verification_distance(query, pose, anchor, statistic="global")
+    visible = verification_distance(query, pose, anchor, statistic="patches")
+    assert float(whole[0]) > 0.1 >= float(visible[0])  # the whole plane fails, the visible part verifies
+    assert float(visible[0]) < 0.5 * float(whole[0])
+    # the bar cut out by the mask (0 there and out of the visibility): verifies too
+    cut = occluded(anchor, 24, 40, 0.0)
+    mask = torch.ones(1, 1, 64, 64)
+    mask[..., :, 24:40] = 0.0
+    assert float(verification_distance(cut, pose, anchor, visibility=mask, statistic="patches", skip_empty=True)[0]) \
+        < 0.02
+    # another product under a third one's bar verifies neither way
+    wrong = occluded(other, 24, 40, textured(7, 64).float())
+    assert float(verification_distance(wrong, pose, anchor, statistic="patches")[0]) > 0.5
+    assert float(verification_distance(other, pose, anchor, statistic="patches")[0]) > 0.5
+    assert float(verification_distance(query[:0], pose[:0], anchor[:0], statistic="patches").shape[0]) == 0
+    with pytest.raises(ValueError, match="statistic"):
+        verification_distance(query, pose, anchor, statistic="median")
+
+
+def test_too_little_visible_is_not_a_verification() -> None:
+    anchor = textured(1, 64).float()
+    pose = torch.eye(3)[None]
+    plane = anchor_foreground(anchor, 1)
+    mask = torch.zeros(1, 1, 64, 64)
+    mask[..., :, :23] = 1.0  # 18 of the (eroded) plane's 54 columns (5 to 58) visible: a third
+    share = float((plane.float() * mask).sum() / plane.sum())
+    assert 0.3 < share < 0.35
+    query = anchor * mask
+    args = {"visibility": mask, "statistic": "patches", "skip_empty": True}
+    assert float(verification_distance(query, pose, anchor, min_visible=0.3, **args)[0]) < 0.02
+    assert float(verification_distance(query, pose, anchor, min_visible=0.4, **args)[0]) == 1.0
+    # a soft visibility counts by its value: half of everything visible is a share of a half
+    half = torch.full((1, 1, 64, 64), 0.5)
+    assert float(verification_distance(anchor, pose, anchor, visibility=half, statistic="patches",
+                                       min_visible=0.45)[0]) < 0.02
+    assert float(verification_distance(anchor, pose, anchor, visibility=half, statistic="patches",
+                                       min_visible=0.55)[0]) == 1.0
+    # too few usable patches (a narrow strip shows two of an 8 x 8 grid of 8 px): the visible plane's ZNCC alone
+    strip = torch.zeros(1, 1, 64, 64)
+    strip[..., 24:32, 16:32] = 1.0
+    assert PATCH_CELLS == 8 and MIN_PATCHES > 2
+    other = textured(5, 64).float()
+    mixed = other.clone()
+    mixed[..., 20:36, 12:36] = anchor[..., 20:36, 12:36]  # the anchor's print under the strip and 4 px around it
+    args = {"visibility": strip, "statistic": "patches", "min_visible": 0.0}
+    assert float(verification_distance(mixed, pose, anchor, **args)[0]) < 0.02
+    seen = anchor_foreground(anchor, 1).float() * strip
+    whole = 1.0 - float(weighted_zncc(gaussian_blur(other, 1.0), gaussian_blur(anchor, 1.0), seen)[0])
+    assert float(verification_distance(other, pose, anchor, **args)[0]) == pytest.approx(whole, abs=1e-6)
+
+
+def test_weighted_zncc_is_zncc_with_a_binary_weight() -> None:
+    g = torch.Generator().manual_seed(3)
+    a, b = torch.rand(2, 3, 20, 20, generator=g), torch.rand(2, 3, 20, 20, generator=g)
+    b[1] = 0.5 * a[1] + 0.2 * b[1]
+    mask = torch.rand(2, 1, 20, 20, generator=g) > 0.4
+    assert torch.allclose(weighted_zncc(a, b, mask.float()), zncc(a, b, mask), atol=1e-9)
+    few = torch.zeros(2, 1, 20, 20)
+    few[..., 0, :MIN_PIXELS - 1] = 1.0
+    assert weighted_zncc(a, b, few).tolist() == [0.0, 0.0]  # fewer than MIN_PIXELS: not compared
