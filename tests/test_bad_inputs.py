@@ -3,7 +3,7 @@
 A case either must *fail cleanly* (``error=`` a substring of the expected message: for a command line,
 exit status 2, exactly one ``error:`` line and no traceback; in-process, a one-line :class:`MatlError`)
 or must *work* (``check=`` inspects the result: grey and RGBA images, a corrupt cache, ...).
-The README ("Reliability") states ``len(CASES)``; ``test_readme_states_the_count`` keeps it honest.
+docs/reliability.md states ``len(CASES)``; ``test_docs_state_the_count`` keeps it honest.
 
 Config cases run ``python -m matl.<entry>`` in a subprocess: validation happens before any data or
 model is built (and, for train, before torch and Lightning are imported), so each takes about a second.
@@ -721,7 +721,7 @@ def test_catalog_names_in_validation_match_the_catalog() -> None:
     assert sorted(SYNTHETIC_CATALOGS) == sorted(CATALOGS)
 
 
-def test_readme_states_the_count() -> None:
-    readme = (REPO / "README.md").read_text()
-    found = re.search(r"(\d+) bad inputs are tested in `?tests/test_bad_inputs\.py", readme)
+def test_docs_state_the_count() -> None:
+    text = (REPO / "docs" / "reliability.md").read_text()
+    found = re.search(r"(\d+) bad inputs are tested in `?tests/test_bad_inputs\.py", text)
     assert found is not None and int(found.group(1)) == len(CASES), (found and found.group(1), len(CASES))

@@ -1,7 +1,7 @@
 """Reliability of training: numerical guards, metrics without NaN, atomic and resumable checkpoints, determinism,
 checkpoint loading safety. The bad-input table is tests/test_bad_inputs.py.
 
-Tolerances (also in the README, "Reliability"):
+Tolerances (also in docs/reliability.md):
 * determinism: two runs of the same seed on the same CPU and thread count give metrics within 1e-9
   (measured: identical);
 * resume: a run SIGKILLed mid-epoch and resumed from last.ckpt ends with test metrics within 1e-9 and
