@@ -188,7 +188,7 @@ def test_fast_refiner_options_are_one_line_errors() -> None:
 
 
 def test_refine_true_is_the_fast_refiner_with_the_config_defaults() -> None:
-    from matl.inference.api import _refiner
+    from matl.inference.recognizer_options import _refiner
     from matl.utils.errors import CONF_DIR
 
     default = _refiner(True)

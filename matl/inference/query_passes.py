@@ -1,0 +1,110 @@
+"""The passes of a :class:`~matl.inference.api.Recognizer`'s query: framing, foreground passes and retries.
+
+A query prepared by :func:`~matl.inference.foreground.mask_query` is framed at model size, answered (its mask
+tightened by its answered plane's outline for ``foreground.passes``), verified and re-ranked
+(:meth:`QueryPasses._answer`); one whose answer does not verify is masked again and answered again
+(``foreground.retry_insets``, :meth:`QueryPasses._foreground_retries`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import torch
+
+from matl.data.image_files import fit_to_model
+from matl.inference.foreground import pose_mask
+from matl.inference.images import _query_visibility, _with_rows
+from matl.inference.refine import RefinedRecognizer
+from matl.inference.verify import Verification
+from matl.models.prediction import Prediction
+from matl.utils.timing import stage
+
+
+class QueryPasses:
+    """The query side of :class:`~matl.inference.api.Recognizer` between the foreground step and the answer; a mixin
+    of it, using its networks, verification and foreground step."""
+
+    def _answer(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+                ) -> tuple[Prediction, torch.Tensor, torch.Tensor, Verification | None]:
+        """The verified model-frame answer of queries prepared by :func:`mask_query`: the prediction (re-ranked
+        by verification), the model-size queries ``(B, 3, S, S)`` of the last foreground pass, ``model_H_file``
+        ``(B, 3, 3)`` and the verification (None without one)."""
+        with stage(self.stage_timer, "framing"):
+            fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
+            queries = torch.stack([f[0] for f in fitted]).to(self.device)
+        query_H_file = torch.stack([f[1].model_H_file for f in fitted])
+        visibility = _query_visibility(prepared, self.image_size, self.query_fill, self.device)
+        upscale = (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).sqrt()  # model px per file px
+        pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
+                                                [p[2] for p in prepared], visibility, upscale)
+        verification = None
+        if self._verifying() and pred.query_H_anchor is not None:
+            with stage(self.stage_timer, "verification"):
+                verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance),
+                                            visibility=visibility, upscale=upscale)
+                pred = self._reranked(pred, verification)
+        return pred, queries, query_H_file, verification
+
+    def _foreground_retries(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                            pred: Prediction, queries: torch.Tensor, verification: Verification
+                            ) -> tuple[Prediction, torch.Tensor, Verification]:
+        """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
+        GrabCut from wider insets (:meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
+        ``retry_thresholds``) and answered again; it keeps the answer
+        whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
+        keeps the crop's size)."""
+        retried: list[int] = []
+        again: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        for i, (_, rgb, found) in enumerate(prepared):
+            if found is None or bool(verification.verified[i]):
+                continue
+            with stage(self.stage_timer, "foreground"):
+                masks = self.foreground.retries(rgb)
+            for mask in masks:
+                retried.append(i)
+                again.append((np.ascontiguousarray(rgb * mask[..., None]), rgb, mask))
+        if not again:
+            return pred, queries, verification
+        alt_pred, alt_queries, _, alt_verification = self._answer(recognizer, again)
+        best = verification.distance.clone()
+        take: dict[int, int] = {}
+        for j, i in enumerate(retried):
+            if float(alt_verification.distance[j]) < float(best[i]):
+                best[i], take[i] = alt_verification.distance[j], j
+        if not take:
+            return pred, queries, verification
+        rows, source = list(take), list(take.values())
+        return (_with_rows(pred, rows, alt_pred, source), _with_rows(queries, rows, alt_queries, source),
+                _with_rows(verification, rows, alt_verification, source))
+    def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
+                           found: list[np.ndarray | None], visibility: torch.Tensor | None = None,
+                           upscale: torch.Tensor | None = None) -> tuple[Prediction, torch.Tensor]:
+        """The prediction of ``(B, 3, S, S)`` queries after the foreground step's pose passes, and the queries
+        of the last pass: a query whose alpha came from the foreground step (``found[i]`` ``(H, W)``, None
+        otherwise) is masked again by its answered plane warped by its pose, within that alpha
+        (:mod:`matl.inference.foreground`). Earlier passes skip the refinement, which weighs the query's pixels by
+        ``visibility`` ``(B, 1, S, S)`` and takes each file's enlargement ``upscale`` ``(B,)``."""
+        if isinstance(recognizer, RefinedRecognizer):
+            recognizer = functools.partial(recognizer, visibility=visibility, upscale=upscale)
+        passes = 0 if self.foreground is None or all(f is None for f in found) else int(self.foreground.passes)
+        if passes == 0:
+            return recognizer(queries), queries
+        redo = torch.tensor([f is not None for f in found], device=queries.device)[:, None, None, None]
+        raw = torch.stack([fit_to_model(rgb, self.image_size, self.query_fill)[0] for rgb in rgbs])
+        ones = [np.ones(rgb.shape[:2], np.float32) if f is None else f for rgb, f in zip(rgbs, found, strict=True)]
+        alpha = torch.stack([fit_to_model(np.repeat(a[..., None], 3, -1), self.image_size, self.query_fill)[0][:1]
+                             for a in ones])
+        within = (raw * alpha).to(queries.device)  # (B, 3, S, S): the query inside the foreground step's alpha
+        inner = self._gallery_recognizer()
+        canon = torch.stack([p.canon_u8 for p in self._planes]).to(queries.device)
+        for _ in range(passes):
+            pred = inner(queries)
+            if pred.query_H_canon is None:  # a model without a pose: the foreground step's alpha alone
+                break
+            outline = pose_mask(canon[pred.plane_index.to(queries.device)], pred.query_H_canon.to(queries.device),
+                                self.image_size)
+            queries = torch.where(redo, within * outline, queries)
+        return recognizer(queries), queries

@@ -1,0 +1,132 @@
+"""The :class:`~matl.inference.api.Recognizer`'s options: one typed dataclass, built once and checked.
+
+:class:`RecognizerOptions` holds every keyword argument of ``Recognizer(...)`` (and of
+:meth:`~matl.inference.api.Recognizer.from_checkpoint` / :meth:`~matl.inference.api.Recognizer.pretrained`), with
+the same defaults; building one checks every value (a bad one is a one-line :class:`~matl.utils.errors.MatlError`)
+and resolves ``refine`` to a refiner or None, ``search`` to a search factory, ``foreground`` to a foreground step
+or None and ``device="auto"`` to the device present. Building it again from its own values gives the same options.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from matl.inference.fast_refine import FastRefiner
+from matl.inference.foreground import ForegroundStep, foreground_option
+from matl.inference.refine import PhotometricRefiner
+from matl.inference.runtime import RUNTIMES
+from matl.inference.verify import VERIFY_STATISTICS
+from matl.models.search import ExactSearch, FaissSearch, SearchFactory
+from matl.utils.errors import MatlError
+
+__all__ = ["OPEN_SET_STATISTICS", "RecognizerOptions"]
+
+OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
+
+
+def _search_factory(search: str | SearchFactory | None) -> SearchFactory:
+    if search is None or search == "exact":
+        return ExactSearch
+    if search == "faiss":
+        return FaissSearch
+    if callable(search):
+        return search
+    raise MatlError(f"search={search!r} is invalid: use 'exact', 'faiss' or a search factory")
+
+
+def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> PhotometricRefiner | FastRefiner | None:
+    if refine is None or refine is False:
+        return None
+    if refine is True:
+        return FastRefiner()  # conf/refiner/fast.yaml's defaults
+    if isinstance(refine, (PhotometricRefiner, FastRefiner)):
+        return refine
+    raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
+
+
+def _number(value: Any) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float))
+
+
+@dataclass
+class RecognizerOptions:
+    """What a :class:`~matl.inference.api.Recognizer` runs with; the fields are its keyword arguments, documented
+    there. After construction ``refine`` is a refiner or None, ``search`` a search factory, ``foreground`` a
+    foreground step or None and ``device`` ``cpu`` or ``cuda`` (``auto``: the GPU when there is one).
+
+    Raises:
+        MatlError: one line naming the first bad value and what to use instead.
+    """
+
+    device: str = "cpu"
+    refine: bool | PhotometricRefiner | FastRefiner | None = False
+    quantize: str = "none"
+    runtime: str = "onnxruntime"
+    search: str | SearchFactory | None = "exact"
+    threshold: float | str | None = "auto"
+    open_set_statistic: str = "verify"
+    open_set_quantile: float = 0.94
+    calibration_warps: int = 8
+    verify_top_k: int = 8
+    verify_max: float = 0.1
+    verify_blur: float = 1.0
+    verify_refine: bool = True
+    verify_statistic: str = "patches"
+    verify_min_visible: float = 0.3
+    gallery_fill: float = 1.0
+    query_fill: float = 1.0
+    batch_size: int = 64
+    foreground: str | ForegroundStep | None = "grabcut"
+
+    def __post_init__(self) -> None:
+        if self.quantize not in ("none", "int8"):
+            raise MatlError(f"quantize={self.quantize!r} is invalid: use none or int8")
+        if self.runtime not in RUNTIMES:
+            raise MatlError(f"runtime={self.runtime!r} is invalid: use {' or '.join(RUNTIMES)}")
+        threshold = self.threshold
+        if not (threshold is None or threshold == "auto" or isinstance(threshold, (int, float))):
+            raise MatlError(f"threshold={threshold!r} is invalid: use auto, a distance or None (closed set)")
+        if self.device == "auto":
+            self.device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.refine = _refiner(self.refine)
+        self.search = _search_factory(self.search)
+        if self.open_set_statistic not in OPEN_SET_STATISTICS:
+            raise MatlError(f"open_set_statistic={self.open_set_statistic!r} is invalid: use verify, verify_or_ratio, "
+                            "ratio or distance")
+        top_k = self.verify_top_k
+        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 0:
+            raise MatlError(f"verify_top_k={top_k!r} is invalid: use an integer >= 0 (0: no verification)")
+        if not _number(self.verify_max) or not 0.0 <= self.verify_max <= 2.0:
+            raise MatlError(f"verify_max={self.verify_max!r} is invalid: use a 1 - ZNCC level in [0, 2] (e.g. 0.1)")
+        if not _number(self.verify_blur) or not 0.0 <= self.verify_blur <= 10.0:
+            raise MatlError(f"verify_blur={self.verify_blur!r} is invalid: use a Gaussian sigma in px in [0, 10]")
+        if not isinstance(self.verify_refine, bool):
+            raise MatlError(f"verify_refine={self.verify_refine!r} is invalid: use true or false")
+        if self.verify_statistic not in VERIFY_STATISTICS:
+            raise MatlError(f"verify_statistic={self.verify_statistic!r} is invalid: use "
+                            f"{' or '.join(VERIFY_STATISTICS)}")
+        if not _number(self.verify_min_visible) or not 0.0 <= self.verify_min_visible <= 1.0:
+            raise MatlError(f"verify_min_visible={self.verify_min_visible!r} is invalid: use a share of the plane in "
+                            "[0, 1] (e.g. 0.3)")
+        self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
+        self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
+        self.open_set_quantile = float(self.open_set_quantile)
+        self.calibration_warps = int(self.calibration_warps)
+        self.gallery_fill, self.query_fill = float(self.gallery_fill), float(self.query_fill)
+        self.batch_size = int(self.batch_size)
+        self.foreground = foreground_option(self.foreground)
+
+    @classmethod
+    def from_config(cls, node: Mapping[str, Any]) -> RecognizerOptions:
+        """The options of a mapping (e.g. a Hydra config node) of keyword arguments; a key that is not an option is
+        a one-line error naming the options."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        unknown = [str(k) for k in node if k not in names]
+        if unknown:
+            raise MatlError(f"{', '.join(unknown)}: not a Recognizer option; use {', '.join(names)}")
+        return cls(**{str(k): v for k, v in node.items()})

@@ -1,0 +1,104 @@
+"""Verification and re-ranking of a :class:`~matl.inference.api.Recognizer`'s answers.
+
+Once a pose is known the query is compared with the anchor pixel by pixel (:mod:`matl.inference.verify`); the
+nearest anchors are tried in turn (up to ``verify_top_k``, each posed by the STN and the alignment stage, or by the
+fast refinement with ``verify_refine``) and the first that verifies becomes the answer (:meth:`Verifying._reranked`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+from matl.geometry import compose_query_H_canon
+from matl.inference.fast_refine import FastRefiner
+from matl.inference.verify import CandidatePose, Verification, verify_candidates
+from matl.models.prediction import Prediction
+
+VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
+
+
+class Verifying:
+    """The verification side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its gallery
+    recognizer, refiner and ``verify_*`` options."""
+
+    def _verifying(self) -> bool:
+        """Whether answers are verified (``verify_top_k`` > 0 and a model with an STN to give a pose)."""
+        return self.verify_top_k > 0 and getattr(self.model, "stn", None) is not None
+
+    def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                exclude_object: torch.Tensor | None = None, visibility: torch.Tensor | None = None,
+                upscale: torch.Tensor | None = None) -> Verification:
+        """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
+        queries' empty (all-zero: transparent) pixels are left out of the comparison, and ``verify_statistic=patches``
+        weighs the rest by the queries' ``visibility`` ``(Q, 1, S, S)`` (None: ones); ``upscale`` ``(Q,)``: each file's
+        enlargement to the model's size, for the candidates' refinement."""
+        inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
+        pose = self._candidate_pose() if self.verify_refine else None
+        first_refined = first is not None and self.refiner is not None
+        for i in range(0, len(queries), step):
+            part = None if first is None else tuple(t[i:i + step] for t in first)
+            chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
+                                            self.verify_blur, part,
+                                            None if exclude_object is None else exclude_object[i:i + step],
+                                            skip_empty=True, candidate_pose=pose, first_refined=first_refined,
+                                            visibility=None if visibility is None else visibility[i:i + step],
+                                            upscale=None if upscale is None else upscale[i:i + step],
+                                            statistic=self.verify_statistic, min_visible=self.verify_min_visible))
+        return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
+                              for f in dataclasses.fields(Verification)))
+
+    def _candidate_refiner(self) -> tuple[FastRefiner, Any]:
+        """The refiner of ``verify_refine``'s candidates and its per-anchor data, built when a candidate first needs
+        it (once per gallery): a query whose nearest anchor verifies never waits for it."""
+        if self._verify_refiner is None:
+            recognizer, gallery = self._build()
+            refiner = self.refiner if isinstance(self.refiner, FastRefiner) else FastRefiner()
+            templates = getattr(recognizer, "templates", None) if refiner is self.refiner else None
+            if templates is None:
+                templates = refiner.anchor_templates(gallery.images)  # once per gallery
+            self._verify_refiner = (refiner, templates)
+        return self._verify_refiner
+
+    def _candidate_pose(self) -> CandidatePose:
+        """``verify_refine``'s poses of candidates: verified after the fast refinement against each (from
+        ``refiner.start``'s pose); an answer carries that pose with ``refine=`` set, else the networks' own."""
+        inner = self._gallery_recognizer()
+
+        refined_answers = self.refiner is not None
+        align = getattr(inner, "align", None)
+
+        def pose(queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor,
+                 visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+            refiner, templates = self._candidate_refiner()
+            network = stn_H  # the pose the recognizer gives without refinement: s(), then the alignment stage
+            compare = refiner.compare_align and refiner.start == "stn"  # the stage's pose kept where its loss is lower
+            if align is not None and (refiner.start == "align" or not refined_answers or compare):
+                network = align.infer(queries, inner.gallery.images[index], stn_H, warped).query_H_anchor
+            start = network if refiner.start == "align" else stn_H
+            others = network.double()[:, None] if compare and network is not stn_H else None
+            refined = refiner(queries, index, start.double(), templates, visibility=visibility, upscale=upscale,
+                              alternatives=others).query_H_anchor.to(stn_H.dtype)
+            return refined, refined if refined_answers else network
+
+        return pose
+    def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
+        """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""
+        device = pred.gallery_index.device
+        index = verification.gallery_index.to(device)
+        changed = index != pred.gallery_index
+        if not bool(changed.any()):
+            return pred
+        g = self.gallery
+        rows = changed[:, None, None]
+        query_H_anchor = torch.where(rows, verification.query_H_anchor.to(device, pred.query_H_anchor.dtype),
+                                     pred.query_H_anchor)
+        query_H_canon = torch.where(rows, compose_query_H_canon(query_H_anchor.double(),
+                                                                g.anchor_H_canon64()[index]), pred.query_H_canon)
+        distance = torch.where(changed, verification.feature_distance.to(device, pred.distance.dtype), pred.distance)
+        return dataclasses.replace(pred, gallery_index=index, object_index=g.object_index[index],
+                                   plane_index=g.plane_index[index], anchor_index=g.anchor_index[index],
+                                   distance=distance, query_H_anchor=query_H_anchor, query_H_canon=query_H_canon)

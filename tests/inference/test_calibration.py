@@ -1,0 +1,80 @@
+"""Open-set calibration: the threshold rule, the calibration's occluded copies, the samples kept."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import pytest
+import torch
+
+from matl import Recognizer
+from matl.inference.calibration import CALIBRATION_HIDDEN, _occluded_copies, calibrate_open_set
+from tests.inference.test_api import read_rgb, stub_recognizer
+from tests.predict_helpers import make_files
+
+
+def test_calibration_by_hand() -> None:
+    genuine = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5], dtype=torch.float64)
+    assert calibrate_open_set(genuine, torch.zeros(0), 1.0) == pytest.approx(0.5)
+    assert calibrate_open_set(genuine, torch.zeros(0), 0.5) == pytest.approx(0.3)
+    assert calibrate_open_set(genuine[:0], torch.zeros(0), 0.5) == float("inf")
+
+
+def test_the_calibration_is_kept_by_save_and_beside_an_enrolled_folder(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer().enrol(gallery)  # cache=True: features and calibration kept in the folder
+    threshold = rec.threshold
+    cache = rec.calibration_cache_file()
+    assert cache is not None and cache.parent == gallery and cache.is_file()
+    rec.save(tmp_path / "saved.pt")
+    computed: list[str] = []
+    calibrate = Recognizer.calibration
+
+    def counted(self: Recognizer) -> dict[str, torch.Tensor]:
+        computed.append(self.calibration_key())
+        return calibrate(self)
+
+    monkeypatch.setattr(Recognizer, "calibration", counted)
+    assert stub_recognizer().load(tmp_path / "saved.pt").threshold == threshold
+    again = stub_recognizer().enrol(gallery)
+    assert again.threshold == threshold and again.calibration_cache_file() == cache
+    samples = rec.calibration()  # (counted)
+    assert stub_recognizer(open_set_quantile=0.5).load(tmp_path / "saved.pt").threshold == pytest.approx(
+        calibrate_open_set(samples["genuine"], samples["impostor"], 0.5))  # the quantile is not in the key
+    assert len(computed) == 1
+    query = read_rgb(queries / "red_box.png")
+    a, b = stub_recognizer().load(tmp_path / "saved.pt").predict(query), rec.predict(query)
+    assert (a.object, a.known, a.score, a.statistic) == (b.object, b.known, b.score, b.statistic)
+    # other calibration options, another gallery, an edited file: calibrated again
+    assert stub_recognizer(verify_max=0.2).load(tmp_path / "saved.pt").threshold is not None and len(computed) == 2
+    grown = stub_recognizer().load(tmp_path / "saved.pt").add("extra", "top", read_rgb(queries / "blue_card.png"))
+    assert grown.calibration_cache_file() is None and grown.threshold is not None and len(computed) == 3
+    cv2.imwrite(str(gallery / "red_box" / "front.png"), read_rgb(queries / "red_box.png")[..., ::-1])
+    edited = stub_recognizer().enrol(gallery)
+    assert edited.threshold is not None and len(computed) == 4 and computed[-1] != computed[0]
+
+
+def test_the_calibration_copies_are_partly_occluded() -> None:
+    S, W = 32, 8
+    images = torch.zeros(2 * W, 3, S, S)
+    images[:, :, 6:26, 4:28] = torch.rand(2 * W, 3, 20, 24, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
+    out, visibility, rows = _occluded_copies(images, ["a/front", "b/back"])
+    assert rows.tolist() == [j for j in range(2 * W) if j % 2 == 1]  # half of each plane's copies
+    again = _occluded_copies(images, ["a/front", "b/back"])
+    assert torch.equal(again[0], out) and torch.equal(again[1], visibility)  # seeded by the planes' names
+    plane = images[0].amax(0) > 0
+    for row in range(2 * W):
+        changed = (out[row] != images[row]).any(0)
+        if row % 2 == 0:
+            assert not bool(changed.any()) and float(visibility[row].min()) == 1.0
+            continue
+        share = float((changed & plane).sum() / plane.sum())
+        low, high = CALIBRATION_HIDDEN
+        assert low - 0.05 <= share <= high + 0.05
+        if row % 4 == 1:  # drawn grey: seen (a mask that kept the occluder)
+            assert float(visibility[row].min()) == 1.0 and float(out[row][:, changed].std()) < 1e-6
+        else:             # cut out: 0 and not seen
+            assert float(out[row][:, changed].abs().max()) == 0.0
+            assert bool((visibility[row][0][changed] == 0).all()) and float(visibility[row].max()) == 1.0

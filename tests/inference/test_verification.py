@@ -1,0 +1,70 @@
+"""Verification and re-ranking: enrolled products verify, unenrolled ones do not, occluded ones on what they show."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matl import Recognizer
+from matl.utils.errors import MatlError
+from tests.inference.test_api import SIZE, StubModel, easy_files, read_rgb, stub_recognizer
+
+
+def test_verification_accepts_an_enrolled_product_and_rejects_an_unenrolled_one(tmp_path: Path) -> None:
+    gallery, queries, pose = easy_files(tmp_path)
+    rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model").enrol(gallery)  # auto threshold, statistic verify
+    enrolled = rec.predict(read_rgb(queries / "red_box.png"))
+    # the stub's pose is exact: the query warped onto red_box's anchor correlates with it
+    assert enrolled.known and enrolled.object == "red_box" and enrolled.verification < rec.verify_max
+    assert enrolled.statistic == 0.0 and enrolled.score == 1.0
+    rec.remove("green_can")
+    unenrolled = rec.predict(read_rgb(queries / "green_can.png"), top_k=2)
+    # no candidate verifies: the statistic is the ratio of the two nearest products' distances
+    assert unenrolled.verification > rec.verify_max
+    assert unenrolled.statistic == pytest.approx(unenrolled.distance / unenrolled.alternatives[0].distance)
+    assert unenrolled.statistic > rec.threshold and not unenrolled.known and unenrolled.object is None
+    # the same query with the plain ratio and verification off: the same statistic, no verification
+    plain = Recognizer(StubModel(pose), SIZE, 1, "stub-model", open_set_statistic="ratio", verify_top_k=0)
+    plain.enrol(gallery).remove("green_can")
+    answer = plain.predict(read_rgb(queries / "green_can.png"))
+    assert answer.statistic == pytest.approx(unenrolled.statistic) and math.isnan(answer.verification)
+    # verify_or_ratio: the same statistic, calibrated on the ratio's own samples
+    lenient = Recognizer(StubModel(pose), SIZE, 1, "stub-model", open_set_statistic="verify_or_ratio")
+    lenient.enrol(gallery).remove("green_can")
+    for key, value in lenient.calibration().items():
+        assert torch.equal(value, plain.calibration()[key])
+    again = lenient.predict(read_rgb(queries / "green_can.png"))
+    assert again.statistic == pytest.approx(unenrolled.statistic) and again.verification > lenient.verify_max
+    for bad in ({"verify_top_k": -1}, {"verify_max": 3.0}, {"verify_blur": -1.0}, {"open_set_statistic": "zncc"},
+                {"verify_refine": "yes"}):
+        with pytest.raises(MatlError, match=next(iter(bad))):
+            stub_recognizer(**bad)
+
+
+def test_an_occluded_query_verifies_on_what_it_shows(tmp_path: Path) -> None:
+    gallery, queries, pose = easy_files(tmp_path)
+    query = read_rgb(queries / "red_box.png")
+    other = read_rgb(queries / "blue_card.png")
+    covered = query.copy()
+    covered[:, 60:90] = other[:, 60:90]  # another product's print across the crop, kept by the mask
+    options = {"threshold": None, "foreground": "none", "verify_max": 0.2}  # 6 px patches at 48 px: a looser level
+    visible = Recognizer(StubModel(pose), SIZE, 1, "stub-model", **options).enrol(gallery)
+    whole = Recognizer(StubModel(pose), SIZE, 1, "stub-model", verify_statistic="global", **options).enrol(gallery)
+    assert visible.verify_statistic == "patches"  # the default
+    seen, judged_whole = visible.predict(covered), whole.predict(covered)
+    assert seen.object == judged_whole.object == "red_box"
+    assert seen.verification <= visible.verify_max < judged_whole.verification
+    # an RGBA query whose alpha leaves the occluder out shows too little when the bar is most of the product
+    alpha = np.full((*query.shape[:2], 1), 255, np.uint8)
+    alpha[:, 20:130] = 0
+    hidden = visible.predict(np.concatenate([query, alpha], -1))
+    assert hidden.verification == 1.0
+    lenient = Recognizer(StubModel(pose), SIZE, 1, "stub-model", verify_min_visible=0.0, **options).enrol(gallery)
+    assert lenient.predict(np.concatenate([query, alpha], -1)).verification < 1.0
+    for bad in ({"verify_statistic": "median"}, {"verify_min_visible": 1.5}, {"verify_min_visible": True}):
+        with pytest.raises(MatlError, match=next(iter(bad))):
+            stub_recognizer(**bad)
