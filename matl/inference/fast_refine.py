@@ -35,10 +35,13 @@ few hundred microseconds on one CPU core:
   ``start=align`` refines the stage's pose.
 * **What the query shows** (``visibility``): the query's visibility in [0, 1] per pixel (its mask: an RGBA alpha,
   the foreground step's; ones when none), warped into the anchor frame by the same pose, weighs each pixel of the
-  anchor's foreground in the gain / bias fit and in the loss (a pixel beside the foreground keeps its full weight:
-  the outline counts); a foreground pixel the query does not show costs a constant, what a residual of ``delta``
-  does, so the print an occluder or the mask hides does not pull the pose, and no pose gains by hiding the product
-  (:func:`~matl.inference.fast_refine_kernels.objective_weighted`).
+  anchor's foreground farther than ``visibility_band`` px inside its outline in the gain / bias fit and in the loss
+  (the other pixels keep their full weight: a mask's edge is as often off as the pose, and the outline keeps its
+  pull); such a pixel the query does not show costs a constant, what a residual of ``delta`` does, so the print an
+  occluder or the mask hides does not pull the pose, and no pose gains by hiding the product
+  (:func:`~matl.inference.fast_refine_kernels.objective_weighted`). A query with a mask is refined twice from its
+  start, with every pixel as it is (far from the answer, the plane over the masked-out background is off, not
+  hidden: the silhouette pulls) and weighted by its visibility; the weighted loss picks between them.
 * **Small queries** (``upscale``): a query file enlarged to the model's size by more than ``match_upscale`` is
   blurrier than the anchor, and a sharp anchor against a blurred query pulls the pose inwards (a dark fringe
   inside the outline costs less when the anchor shrinks onto the query's interior). Such a query is refined
@@ -95,6 +98,8 @@ class AnchorLevel:
         image: ``(h, w)`` float32 luminance, 0 off the foreground.
         fg: ``(h, w)`` float32 foreground indicator ``F`` (the gain / bias fit's support).
         region: ``(h, w)`` float32 0/1 pixels of the loss (``region=foreground``); None: all (``frame``).
+        inner: ``(h, w)`` float32 0/1 the foreground less a band along its outline (``visibility_band``), where the
+            query's visibility weighs the pixels.
         size: ``(h, w)`` of the level.
         count: pixels of ``F``; ``mean`` ``A``'s mean over them, ``var`` ``sum_F (A - mean)^2``.
         total: ``sum(region)``: the loss is a mean over these pixels.
@@ -109,6 +114,7 @@ class AnchorLevel:
     image: np.ndarray
     fg: np.ndarray
     region: np.ndarray | None
+    inner: np.ndarray
     size: tuple[int, int]
     count: float
     mean: float
@@ -133,7 +139,7 @@ class AnchorLevel:
 
     @property
     def nbytes(self) -> int:
-        arrays = (self.image, self.fg, self.index, self.sdT, self.hessian)
+        arrays = (self.image, self.fg, self.inner, self.index, self.sdT, self.hessian)
         return sum(a.nbytes for a in arrays) + (self.region.nbytes if self.region is not None else 0)
 
 
@@ -188,6 +194,19 @@ def _corner_jacobian() -> np.ndarray:
 _CORNER_J = _corner_jacobian()
 
 
+def _folds(H: np.ndarray) -> bool:
+    """Whether the normalised pose ``H`` turns the plane over (mirrors it) or sends part of it to or beyond infinity:
+    an image corner it maps lies there, or the mapped corners are not a convex quadrilateral of the frame's own
+    orientation (no camera sees a plane so)."""
+    mapped = _CORNERS @ H.T
+    if not bool((mapped[:, 2] > 1e-9).all()):
+        return True
+    xy = mapped[:, :2] / mapped[:, 2:]
+    edges = np.roll(xy, -1, axis=0) - xy
+    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    return not bool((turns > 0).all())  # the frame's corners, in this order, turn one way: every turn positive
+
+
 def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
     """Finest first; level ``l``'s pixel ``i`` is centred on the full image's pixel ``2^l i`` (``cv2.pyrDown``)."""
     out = [image]
@@ -240,6 +259,9 @@ class FastRefiner:
         cache: anchors at another resolution kept (least recently used dropped beyond it).
         visibility: weigh the anchor's foreground pixels by the query's visibility (its mask) warped into the anchor
             frame; False: every pixel counts fully, whatever the query's mask.
+        visibility_band: px (at full resolution; halved per level, at least 1) along the anchor's outline where the
+            visibility does not apply: a mask's edge is as likely off as the pose, and the outline keeps its pull
+            (0: the whole foreground).
     """
 
     def __init__(self, iterations: int | Sequence[int] = (3, 3, 4), levels: int = 3, region: str = "auto",
@@ -248,7 +270,7 @@ class FastRefiner:
                  threads: int | None = None, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
                  auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined",
                  compare_align: bool = False, match_upscale: float | None = 1.2, cache: int = 4096,
-                 visibility: bool = True) -> None:
+                 visibility: bool = True, visibility_band: int = 0) -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
         if not per_level or min(per_level) < 0:
@@ -293,6 +315,9 @@ class FastRefiner:
         if not isinstance(visibility, bool):
             raise MatlError(f"refiner.visibility must be true or false, got {visibility!r}")
         self.compare_align, self.visibility = compare_align, visibility
+        if isinstance(visibility_band, bool) or int(visibility_band) < 0:
+            raise MatlError(f"refiner.visibility_band must be an integer >= 0 (px), got {visibility_band!r}")
+        self.visibility_band = int(visibility_band)
         self.match_upscale = None if match_upscale is None else float(match_upscale)
         self.cache = int(cache)
         self._templates: AnchorTemplates | None = None  # set by prepare()
@@ -340,6 +365,9 @@ class FastRefiner:
             pixel_H_norm = np.linalg.inv(norm_H_pixel)
             gx, gy = gx / norm_H_pixel[0, 0], gy / norm_H_pixel[1, 1]  # per normalised unit
             textured = (gx != 0) | (gy != 0)
+            band = max(1, round(self.visibility_band / 2 ** level)) if self.visibility_band > 0 else 0
+            inner = (cv2.erode(mask, np.ones((2 * band + 1, 2 * band + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                               borderValue=0) if band else mask).astype(np.float32)
             for levels, kind in zip(out, kinds, strict=True):
                 region = None
                 if kind != "frame":
@@ -359,7 +387,8 @@ class FastRefiner:
                 levels.append(AnchorLevel(
                     np.ascontiguousarray(image if region is None else image * region, dtype=np.float32),
                     np.ascontiguousarray(fit, dtype=np.float32),
-                    None if region is None else np.ascontiguousarray(region, dtype=np.float32), (int(h), int(w)),
+                    None if region is None else np.ascontiguousarray(region, dtype=np.float32),
+                    np.ascontiguousarray(inner), (int(h), int(w)),
                     count, mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
                     np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, pixel_H_norm))
         return out
@@ -441,8 +470,8 @@ class FastRefiner:
         if visible is not None:
             seen = sample_by_pixels(visible, M, anchor.size)
             total, gain, A, b = kernels.evaluate_weighted(
-                warped, seen, anchor.image, anchor.fg, region, anchor.region is not None, anchor.index, anchor.sdT,
-                anchor.hessian, self._loss_code, self.delta * scale)
+                warped, seen, anchor.image, anchor.fg, anchor.inner, region, anchor.region is not None, anchor.index,
+                anchor.sdT, anchor.hessian, self._loss_code, self.delta * scale)
             return total / (anchor.total * scale * scale), gain, A, b, warped
         total, gain, A, b = kernels.evaluate(warped, anchor.image, anchor.fg, region, anchor.region is not None,
                                              anchor.mean, anchor.inv_var, anchor.inv_count, anchor.index, anchor.sdT,
@@ -457,8 +486,8 @@ class FastRefiner:
         region = anchor.region if anchor.region is not None else anchor.fg
         if visible is not None:
             total = kernels.objective_weighted(warped, sample_by_pixels(visible, M, anchor.size), anchor.image,
-                                               anchor.fg, region, anchor.region is not None, self._loss_code,
-                                               self.delta * scale)[0]
+                                               anchor.fg, anchor.inner, region, anchor.region is not None,
+                                               self._loss_code, self.delta * scale)[0]
             return total / (anchor.total * scale * scale)
         total = kernels.objective(warped, anchor.image, anchor.fg, region, anchor.region is not None, anchor.mean,
                                   anchor.inv_var, anchor.inv_count, self._loss_code, self.delta * scale)[0]
@@ -548,19 +577,28 @@ class FastRefiner:
         pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
         seen = None if visible is None else _pyramid(np.ascontiguousarray(visible, dtype=np.float32), len(pyramid),
                                                      self.min_size)
-        H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing, seen)
+        # every pixel as it is: the silhouette pulls from afar (a pose that puts the plane over the masked-out
+        # background is far off, not hidden)
+        H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing)
         if foreground is not None and outside is not None and self.leak(
                 raw, full, outside, H, warped if raw is query else None) > self.auto_leak:
             anchor, full = foreground, foreground[0]
-            H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False, seen)
+            H, loss, _ = self._descend(pyramid, anchor, H if self.auto_from == "refined" else H0n, scale, False)
+        visible_full = None if seen is None else seen[0]
+        if seen is not None:  # and weighted by what the query shows, from the start: the hidden print pulls nothing
+            refined = [R for R in (H, self._descend(pyramid, anchor, H0n, scale, False, seen)[0]) if not _folds(R)]
+            scores = [self._loss(query, full, full.pixel_H_norm @ R @ full.norm_H_pixel, scale, visible_full)
+                      for R in refined]
+            H, loss = (refined[int(np.argmin(scores))], min(scores)) if refined else (H, math.inf)
         others = [np.asarray(a, dtype=np.float64) for a in alternatives]
         others = [a for a in others if math.isfinite(a.sum()) and abs(a[2, 2]) > 1e-12]
         unrefined = [H0, *others]  # pixel poses, the start first
+        # every pose on every pixel of the level's region (a masked query: weighted by what it shows, a pixel it does
+        # not show at a fixed cost): the refined one against the unrefined ones
         H_px = full.pixel_H_norm @ H @ full.norm_H_pixel
-        # every pose on every pixel of the level's region (a pixel the query does not show at a pose at a fixed cost)
-        losses = [self._loss(query, full, M, scale, None if seen is None else seen[0]) for M in unrefined]
+        losses = [self._loss(query, full, M, scale, visible_full) for M in unrefined]
         best = int(np.argmin(losses))  # the first of equals: the start before an alternative
-        accepted = loss < losses[best] and not degenerate_matrix(H, self.max_condition)
+        accepted = loss < losses[best] and not degenerate_matrix(H, self.max_condition) and not _folds(H)
         if not accepted:
             kept = unrefined[best]
             if best > 0:

@@ -189,35 +189,36 @@ def evaluate(warped: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.n
 
 
 @njit(**_REDUCE)
-def objective_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray,
-                       has_region: bool, loss_code: int, delta: float
+def objective_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, inner: np.ndarray,
+                       region: np.ndarray, has_region: bool, loss_code: int, delta: float
                        ) -> tuple[float, np.ndarray, float, np.ndarray]:
     """:func:`objective` with a per-pixel weight from the query's visibility.
 
-    The weight of a pixel is ``u = (1 - fg + fg * visible)`` (times ``region`` when ``has_region``): a foreground
-    pixel counts as much as the query shows it, a pixel beside the foreground fully. The query's pixels are its
-    print times its visibility (a mask applied, then warped and pyramided alike), so on the foreground the print is
-    ``x = warped / visible`` (normalised convolution: a pixel half hidden at a mask's edge is not half as bright;
-    ``warped`` itself where ``visible`` is below 1e-3, whose weight is nil), beside it ``x = warped``. The gain /
-    bias fit is the least squares of ``x`` by ``gain * image + bias`` over ``fg * visible``; the loss is
-    ``sum u rho(r) + sum fg (1 - visible) rho(delta)`` with ``r = x - gain * image - bias * fg`` (times ``region``):
-    a foreground pixel the query does not show costs as much as a residual of ``delta``, whatever the print
-    there, so every pose is judged on every pixel and a pose cannot lower its loss by hiding the product. With
-    ``visible`` all ones this is :func:`objective`.
+    The visibility applies inside the foreground (``inner``: the foreground less a band along its outline, where a
+    mask's edge is as likely wrong as right and the outline must keep its pull). The weight of a pixel is
+    ``u = 1 - inner + inner * visible`` (times ``region`` when ``has_region``): an inner pixel counts as much as the
+    query shows it, any other fully. The query's pixels are its print times its visibility (a mask applied, then
+    warped and pyramided alike), so on an inner pixel the print is ``x = warped / visible`` (normalised convolution:
+    a pixel half hidden at an occluder's edge is not half as bright; ``warped`` itself where ``visible`` is below
+    1e-3, whose weight is nil), elsewhere ``x = warped``. The gain / bias fit is the least squares of ``x`` by
+    ``gain * image + bias`` over ``fg * u``; the loss is ``sum u rho(r) + sum inner (1 - visible) rho(delta)``
+    with ``r = x - gain * image - bias * fg`` (times ``region``): an inner pixel the query does not show costs as
+    much as a residual of ``delta``, whatever the print there, so every pose is judged on every pixel and a pose
+    cannot lower its loss by hiding the product. With ``visible`` all ones this is :func:`objective`.
 
     Args:
         warped, image, fg: as :func:`objective`'s; visible: ``(h, w)`` float32 in [0, 1], the query's visibility
-            warped into the anchor frame by the same pose.
+            warped into the anchor frame by the same pose; inner: ``(h, w)`` float32 0/1, where it applies.
     Returns:
         ``(loss sum, r (h, w) float32, gain, u (h, w) float32)``; the sum is ``inf`` when not finite or when less
         than one pixel of the foreground is visible.
     """
-    flat_v, flat_a, flat_f = visible.ravel(), image.ravel(), fg.ravel()
-    seen = warped.copy()  # the print where it is seen: warped / visible on the foreground
+    flat_v, flat_a, flat_f, flat_k = visible.ravel(), image.ravel(), fg.ravel(), inner.ravel()
+    seen = warped.copy()  # the print where it is seen: warped / visible inside the foreground
     flat_w = seen.ravel()
     n = flat_w.shape[0]
     for i in range(n):
-        if flat_f[i] > 0.0 and flat_v[i] >= 1e-3:
+        if flat_k[i] > 0.0 and flat_v[i] >= 1e-3:
             flat_w[i] = flat_w[i] / flat_v[i]
     s_1 = 0.0
     s_a = 0.0
@@ -225,7 +226,7 @@ def objective_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarra
     s_x = 0.0
     s_ax = 0.0
     for i in range(n):
-        c = np.float64(flat_f[i]) * flat_v[i]
+        c = np.float64(flat_f[i]) * (1.0 - flat_k[i] + flat_k[i] * flat_v[i])
         a = np.float64(flat_a[i])
         x = np.float64(flat_w[i])
         s_1 += c
@@ -238,8 +239,8 @@ def objective_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarra
     flat_r_region = region.ravel()
     hidden = 0.0  # foreground pixels not shown, weighted as the loss is
     for i in range(n):
-        u = 1.0 - flat_f[i] + flat_f[i] * flat_v[i]
-        h = np.float64(flat_f[i]) * (1.0 - flat_v[i])
+        u = 1.0 - flat_k[i] + flat_k[i] * flat_v[i]
+        h = np.float64(flat_k[i]) * (1.0 - flat_v[i])
         if has_region:
             u *= flat_r_region[i]
             h *= flat_r_region[i]
@@ -326,16 +327,17 @@ def normal_equations_weighted(r: np.ndarray, weight: np.ndarray, index: np.ndarr
 
 
 @njit(**_JIT)
-def evaluate_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.ndarray,
-                      has_region: bool, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, loss_code: int,
-                      delta: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+def evaluate_weighted(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray, inner: np.ndarray,
+                      region: np.ndarray, has_region: bool, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray,
+                      loss_code: int, delta: float) -> tuple[float, float, np.ndarray, np.ndarray]:
     """:func:`objective_weighted` and :func:`normal_equations_weighted` at its residuals in one call (the hidden
     pixels' cost does not move with a small step: the Gauss-Newton system leaves it out).
 
     Returns:
         ``(loss sum, gain, A (8, 8), b (8,))``.
     """
-    total, r, gain, weight = objective_weighted(warped, visible, image, fg, region, has_region, loss_code, delta)
+    total, r, gain, weight = objective_weighted(warped, visible, image, fg, inner, region, has_region, loss_code,
+                                                delta)
     A, b = normal_equations_weighted(r, weight, index, sdT, hessian, gain, loss_code, delta)
     return total, gain, A, b
 
@@ -422,8 +424,8 @@ def warm_up() -> None:
     evaluate(image, image, image, image, False, 0.0, 1.0, 1.0, np.zeros(1, dtype=np.int32),
              np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
     objective(image, image, image, image, False, 0.0, 1.0, 1.0, 1, 1.0)
-    evaluate_weighted(image, image, image, image, image, False, np.zeros(1, dtype=np.int32),
+    evaluate_weighted(image, image, image, image, image, image, False, np.zeros(1, dtype=np.int32),
                       np.zeros((8, 1), dtype=np.float32), np.eye(8), 1, 1.0)
-    objective_weighted(image, image, image, image, image, False, 1, 1.0)
+    objective_weighted(image, image, image, image, image, image, False, 1, 1.0)
     lm_step(np.eye(8), np.zeros(8), 1e-3, np.eye(3), np.eye(8), np.eye(3), np.eye(3))
     count_above(image, np.zeros((4, 4), dtype=np.uint8), 0.0)

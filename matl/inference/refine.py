@@ -22,10 +22,12 @@ polished by minimising the appearance loss itself, the classic Lucas-Kanade way:
 * **Coarse to fine.** A Gaussian pyramid (``levels``), coarsest first: coarse levels widen the
   basin of convergence, the finest level gives sub-pixel accuracy.
 * **What the query shows.** A query's visibility in [0, 1] per pixel (its mask; ones when none), warped into
-  the anchor frame with the pose, weighs each pixel of the anchor's foreground in the gain / bias fit and in
-  the loss (pixels beside the foreground keep their weight: the outline counts); a foreground pixel the query
-  does not show costs what a residual of ``delta`` does, so what an occluder or the mask hides does not pull
-  the pose and no pose gains by hiding the product.
+  the anchor frame with the pose, weighs each pixel of the anchor's foreground farther than ``visibility_band``
+  px inside its outline in the gain / bias fit and in the loss (the others keep their weight: the outline
+  counts, and a mask's edge is as often off as the pose); such a pixel the query does not show costs what a
+  residual of ``delta`` does, so what an occluder or the mask hides does not pull the pose and no pose gains by
+  hiding the product. A query with a mask is refined twice from its start, every pixel as it is (far from the
+  answer the silhouette pulls) and weighted; the weighted loss picks between them.
 * **Small queries.** A query file enlarged by more than ``match_upscale`` to the model's size is compared
   with its anchor brought to the query's resolution (:func:`at_resolution`): a sharp anchor against a blurred
   query pulls the pose inwards.
@@ -137,12 +139,14 @@ class PhotometricRefiner:
             with its anchor at the query's resolution (:func:`at_resolution`; None: never).
         visibility: weigh the anchor's foreground pixels by the query's visibility (its mask) warped into the
             anchor frame; False: every pixel counts fully.
+        visibility_band: px (at full resolution; halved per level, at least 1) along the anchor's outline where the
+            visibility does not apply (a mask's edge is as likely off as the pose; 0: the whole foreground).
     """
 
     def __init__(self, iterations: int = 8, levels: int = 3, step: float = 1.0, loss: str = "huber",
                  delta: float = 0.5, damping: float = 1e-3, min_size: int = 8, min_std: float = 0.02,
                  max_condition: float = 1e4, tolerance: float = 0.01, grayscale: bool = True,
-                 match_upscale: float | None = 1.2, visibility: bool = True) -> None:
+                 match_upscale: float | None = 1.2, visibility: bool = True, visibility_band: int = 0) -> None:
         if int(iterations) < 0:
             raise ValueError(f"refiner.iterations must be >= 0, got {iterations}")
         if int(levels) < 1:
@@ -164,6 +168,9 @@ class PhotometricRefiner:
         if not isinstance(visibility, bool):
             raise ValueError(f"refiner.visibility must be true or false, got {visibility!r}")
         self.visibility = visibility
+        if isinstance(visibility_band, bool) or int(visibility_band) < 0:
+            raise ValueError(f"refiner.visibility_band must be an integer >= 0 (px), got {visibility_band!r}")
+        self.visibility_band = int(visibility_band)
 
     # ----------------------------------------------------------------------------------- pieces
     def _query_scale(self, queries: torch.Tensor) -> torch.Tensor:
@@ -193,22 +200,27 @@ class PhotometricRefiner:
             out.append(pyrdown(out[-1], align_corners=True))
         return out
 
-    @staticmethod
-    def _anchor_level(anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The anchor level and its foreground indicator ``(B, 1, h, w)``."""
-        return anchor, (anchor > _FOREGROUND).any(dim=1, keepdim=True).to(anchor.dtype)
+    def _anchor_level(self, anchor: torch.Tensor, level: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The anchor level, its foreground indicator ``(B, 1, h, w)`` and that foreground less a band of
+        ``visibility_band / 2^level`` px (at least 1) along its outline (where the query's visibility applies)."""
+        mask = (anchor > _FOREGROUND).any(dim=1, keepdim=True).to(anchor.dtype)
+        band = max(1, round(self.visibility_band / 2 ** level)) if self.visibility_band > 0 else 0
+        inner = -F.max_pool2d(-mask, 2 * band + 1, stride=1, padding=band) if band else mask
+        return anchor, mask, inner
 
     def _residuals(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
                    scale: torch.Tensor, grid: torch.Tensor | None = None, visible: torch.Tensor | None = None,
-                   seen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+                   seen: torch.Tensor | None = None, inner: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Warped query, residuals ``(B, C, h, w)`` at pose ``H`` (normalised, ``(B, 3, 3)``) and the query's
         visibility in the anchor frame ``(B, 1, h, w)`` (None without one); ``grid``: the level's
         :func:`~matl.geometry.normalised_grid` ``(3, h * w)`` (None looks it up). ``visible`` ``(B, 1, h, w)``: the
         query's visibility at this level, warped here with the query; ``seen``: already in the anchor frame.
 
-        With a visibility ``v`` the query's pixels are its print times ``v`` (a mask applied): on ``F`` the print is
-        ``warped / v`` (normalised convolution; where ``v`` is above 1e-3), the fit runs over ``F v`` and
-        :meth:`_loss` weighs the residuals by ``1 - F + F v``.
+        With a visibility ``v`` the query's pixels are its print times ``v`` (a mask applied): on the inner
+        foreground ``K`` (``inner``; ``F`` when None) the print is ``warped / v`` (normalised convolution; where ``v``
+        is above 1e-3), the fit runs over ``F (1 - K + K v)`` and :meth:`_loss` weighs the residuals by
+        ``1 - K + K v``.
 
         Lighting model: on the anchor's foreground ``F`` the warped query is ``gain * A + bias`` per
         channel, background stays 0, so ``r = (Iw - gain * A - bias * F) / scale`` over the whole frame.
@@ -233,9 +245,10 @@ class PhotometricRefiner:
             gain = cov / var
             bias = w_mean - gain * a_mean
             return warped, (warped - gain * anchor - bias * mask) / scale, None
-        shown = (mask > 0) & (seen >= 1e-3)
+        inner = mask if inner is None else inner
+        shown = (inner > 0) & (seen >= 1e-3)
         warped = torch.where(shown, warped / seen.clamp_min(1e-3), warped)
-        fit = mask * seen
+        fit = mask * (1.0 - inner + inner * seen)
         count = fit.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-6)
         a_mean = (anchor * fit).sum(dim=(-2, -1), keepdim=True) / count
         w_mean = (warped * fit).sum(dim=(-2, -1), keepdim=True) / count
@@ -249,9 +262,9 @@ class PhotometricRefiner:
     def _loss(self, r: torch.Tensor, mask: torch.Tensor | None = None, seen: torch.Tensor | None = None
               ) -> torch.Tensor:
         """``(B,)`` mean robust loss; non-finite residuals give +inf (never accepted). With the query's visibility in
-        the anchor frame ``seen`` ``(B, 1, h, w)`` (and the anchor's foreground ``mask``) each residual is weighted
-        by ``1 - F + F v`` and a foreground pixel the query does not show costs ``F (1 - v) rho(delta)``: every
-        pixel counts, a pose cannot lower its loss by hiding the product."""
+        the anchor frame ``seen`` ``(B, 1, h, w)`` (and ``mask``, the inner foreground ``K`` where it applies) each
+        residual is weighted by ``1 - K + K v`` and an inner pixel the query does not show costs
+        ``K (1 - v) rho(delta)``: every pixel counts, a pose cannot lower its loss by hiding the product."""
         rho = self._rho_and_weight(r)[0]
         if seen is None or mask is None:
             value = rho.mean(dim=(1, 2, 3))
@@ -298,24 +311,34 @@ class PhotometricRefiner:
         scale = self._query_scale(queries)
         q_pyr = self._pyramid(queries)
         v_pyr = None if visible is None else self._pyramid(visible)
-        a_pyr = [self._anchor_level(a) for a in self._pyramid(anchors)]
+        a_pyr = [self._anchor_level(a, level) for level, a in enumerate(self._pyramid(anchors))]
 
-        H = H0.clone()
+        H = H0.clone()  # every pixel as it is: far from the answer the silhouette pulls
         for level in reversed(range(len(q_pyr))):  # coarsest first
-            H = self._refine_level(q_pyr[level], *a_pyr[level], H, scale, None if v_pyr is None else v_pyr[level])
+            H = self._refine_level(q_pyr[level], *a_pyr[level], H, scale)
+        seen_H = None
+        if v_pyr is not None:  # and weighted by what each query shows, from the start
+            seen_H = H0.clone()
+            for level in reversed(range(len(q_pyr))):
+                seen_H = self._refine_level(q_pyr[level], *a_pyr[level], seen_H, scale, v_pyr[level])
 
-        anchor, mask = a_pyr[0]
+        anchor, mask, inner = a_pyr[0]
         starts = [H0]  # the unrefined poses, normalised: the start first
         if alternatives is not None:
             starts += [pixel_to_normalised(alternatives[:, k].double().to(H0.device), size)
                        for k in range(alternatives.shape[1])]
 
         def loss_at(P: torch.Tensor) -> torch.Tensor:  # every pose on every pixel (a hidden one at a fixed cost)
-            _, r, seen = self._residuals(queries, anchor, mask, P, scale, visible=visible)
-            return self._loss(r, mask, seen)
+            _, r, seen = self._residuals(queries, anchor, mask, P, scale, visible=visible, inner=inner)
+            return self._loss(r, inner, seen)
 
         losses = torch.stack([loss_at(P) for P in starts], 1)                      # (B, K + 1)
         loss_after = loss_at(H)
+        if seen_H is not None:  # the refined pose of lower weighted loss
+            seen_loss = loss_at(seen_H)
+            lower = seen_loss < loss_after
+            H = torch.where(lower[:, None, None], seen_H, H)
+            loss_after = torch.where(lower, seen_loss, loss_after)
         best_loss, best = losses.min(1)  # the first of equals: the start before an alternative
         accepted = (loss_after < best_loss) & self._well_conditioned(H)
         pixel_starts = torch.stack([query_H_anchor.double(), *(normalised_to_pixel(P, size) for P in starts[1:])], 1)
@@ -357,8 +380,8 @@ class PhotometricRefiner:
         J = torch.stack([gxx, gx * y, gx, gy * x, gyy, gy, -radial * x, -radial * y], dim=-1)  # (B, C, hw, 8)
         return J.reshape(B, C * h * w, 8)
 
-    def _refine_level(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, H: torch.Tensor,
-                      scale: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
+    def _refine_level(self, query: torch.Tensor, anchor: torch.Tensor, mask: torch.Tensor, inner: torch.Tensor,
+                      H: torch.Tensor, scale: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
         """Levenberg-Marquardt / IRLS iterations at one level (``visible``: the queries' visibility at this level);
         returns the normalised ``H`` ``(B, 3, 3)``."""
         B, C, h, w = query.shape
@@ -368,15 +391,15 @@ class PhotometricRefiner:
         half_size = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64, device=query.device)
         lam = torch.full((B,), self.damping, dtype=torch.float64, device=query.device)
         eye8 = torch.eye(8, dtype=torch.float64, device=query.device)
-        warped, r, seen = self._residuals(query, anchor, mask, H, scale, grid, visible)
-        loss = self._loss(r, mask, seen)
+        warped, r, seen = self._residuals(query, anchor, mask, H, scale, grid, visible, inner=inner)
+        loss = self._loss(r, inner, seen)
         A = g = None
         for _ in range(self.iterations):
             if A is None:  # the normal equations change only when some query moved
                 J = self._jacobian(warped, scale, grid)
                 weight = self._rho_and_weight(r)[1]
                 if seen is not None:
-                    weight = weight * (1.0 - mask + mask * seen)
+                    weight = weight * (1.0 - inner + inner * seen)
                 Jw = J * weight.reshape(B, C * h * w, 1)
                 A = (Jw.transpose(1, 2) @ J).double()                              # (B, 8, 8)
                 g = (Jw.transpose(1, 2) @ r.reshape(B, C * h * w, 1)).double()     # (B, 8, 1)
@@ -386,8 +409,9 @@ class PhotometricRefiner:
             update = _update_matrix(dp)
             candidate = H @ update
             candidate = candidate / candidate[:, 2:3, 2:3]
-            cand_warped, cand_r, cand_seen = self._residuals(query, anchor, mask, candidate, scale, grid, visible)
-            cand_loss = self._loss(cand_r, mask, cand_seen)
+            cand_warped, cand_r, cand_seen = self._residuals(query, anchor, mask, candidate, scale, grid, visible,
+                                                             inner=inner)
+            cand_loss = self._loss(cand_r, inner, cand_seen)
             better = cand_loss < loss                                              # per query
             if better.any():
                 H = torch.where(better[:, None, None], candidate, H)

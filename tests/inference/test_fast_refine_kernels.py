@@ -143,16 +143,17 @@ def test_count_above_counts_bright_pixels_inside_the_mask_as_opencv() -> None:
 
 
 def _weighted_reference(warped: np.ndarray, visible: np.ndarray, image: np.ndarray, fg: np.ndarray,
-                        region: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """The weighted objective written out: the print ``x = warped / visible`` on the foreground (where visible), gain
-    and bias the least squares of ``x`` by ``gain * image + bias`` over ``fg * visible``, the residuals' weights
-    ``u = 1 - fg + fg * visible`` and the hidden pixels ``fg * (1 - visible)`` (both times ``region``)."""
-    w, v, a, f = (x.astype(np.float64) for x in (warped, visible, image, fg))
-    x = np.where((f > 0) & (v >= 1e-3), w / np.maximum(v, 1e-3), w)
-    c = f * v
+                        inner: np.ndarray, region: np.ndarray | None
+                        ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted objective written out: the print ``x = warped / visible`` on the inner foreground (where visible),
+    gain and bias the least squares of ``x`` by ``gain * image + bias`` over ``fg * u``, the residuals' weights
+    ``u = 1 - inner + inner * visible`` and the hidden pixels ``inner * (1 - visible)`` (both times ``region``)."""
+    w, v, a, f, k = (x.astype(np.float64) for x in (warped, visible, image, fg, inner))
+    x = np.where((k > 0) & (v >= 1e-3), w / np.maximum(v, 1e-3), w)
+    u, hidden = 1.0 - k + k * v, k * (1.0 - v)
+    c = f * u
     design = np.stack([a.ravel(), np.ones(a.size)], 1) * np.sqrt(c.ravel())[:, None]
     gain, bias = np.linalg.lstsq(design, x.ravel() * np.sqrt(c.ravel()), rcond=None)[0]
-    u, hidden = 1.0 - f + f * v, f * (1.0 - v)
     if region is not None:
         u, hidden = u * region, hidden * region
     return gain, x - gain * a - bias * f, u, hidden
@@ -164,9 +165,10 @@ def test_weighted_objective_is_the_visible_fit_and_the_weighted_loss(loss: str, 
     warped, image, fg, region = _images()
     visible = RNG.random((H_, W_), dtype=np.float32)
     visible[RNG.random((H_, W_)) > 0.7] = 0.0  # hidden pixels
-    gain, r, u, hidden = _weighted_reference(warped, visible, image, fg, region if with_region else None)
+    inner = fg * (RNG.random((H_, W_)) > 0.3).astype(np.float32)  # the foreground less its outline band
+    gain, r, u, hidden = _weighted_reference(warped, visible, image, fg, inner, region if with_region else None)
     delta = 0.05
-    total, out, fitted, weight = kernels.objective_weighted(warped, visible, image, fg, region, with_region,
+    total, out, fitted, weight = kernels.objective_weighted(warped, visible, image, fg, inner, region, with_region,
                                                             kernels.LOSS_CODES.index(loss), delta)
     assert fitted == pytest.approx(gain, rel=1e-5)
     np.testing.assert_allclose(out, r, rtol=1e-5, atol=1e-5)
@@ -181,11 +183,16 @@ def test_weighted_objective_is_the_visible_fit_and_the_weighted_loss(loss: str, 
     var = (((image - mean) ** 2) * fg).sum()
     plain = kernels.objective(warped, image, fg, region, with_region, mean, 1.0 / var, 1.0 / count,
                               kernels.LOSS_CODES.index(loss), delta)
-    weighted = kernels.objective_weighted(warped, ones, image, fg, region, with_region,
+    weighted = kernels.objective_weighted(warped, ones, image, fg, inner, region, with_region,
                                           kernels.LOSS_CODES.index(loss), delta)
     assert weighted[0] == pytest.approx(plain[0], rel=1e-5) and weighted[2] == pytest.approx(plain[2], rel=1e-5)
     # nothing of the foreground visible: no fit, an infinite loss (never accepted)
-    assert kernels.objective_weighted(warped, np.zeros_like(visible), image, fg, region, False, 1, delta)[0] == np.inf
+    assert kernels.objective_weighted(warped, np.zeros_like(visible), image, fg, fg, region, False, 1,
+                                      delta)[0] == np.inf
+    # no inner foreground (a band as wide as the plane): the visibility changes nothing
+    none = kernels.objective_weighted(warped, visible, image, fg, np.zeros_like(fg), region, with_region,
+                                      kernels.LOSS_CODES.index(loss), delta)
+    assert none[0] == pytest.approx(plain[0], rel=1e-5) and none[2] == pytest.approx(plain[2], rel=1e-5)
 
 
 @pytest.mark.parametrize("loss", kernels.LOSS_CODES)
@@ -244,8 +251,9 @@ def test_evaluate_weighted_is_the_weighted_objective_and_its_normal_equations() 
     sdT = RNG.standard_normal((8, n)).astype(np.float32)
     hessian = sdT.astype(np.float64) @ sdT.T.astype(np.float64)
     for code in range(len(kernels.LOSS_CODES)):
-        total, r, gain, weight = kernels.objective_weighted(warped, visible, image, fg, region, True, code, 0.05)
+        total, r, gain, weight = kernels.objective_weighted(warped, visible, image, fg, fg, region, True, code, 0.05)
         A, b = kernels.normal_equations_weighted(r, weight, index, sdT, hessian, gain, code, 0.05)
-        fused = kernels.evaluate_weighted(warped, visible, image, fg, region, True, index, sdT, hessian, code, 0.05)
+        fused = kernels.evaluate_weighted(warped, visible, image, fg, fg, region, True, index, sdT, hessian, code,
+                                          0.05)
         assert fused[0] == total and fused[1] == gain
         assert np.array_equal(fused[2], A) and np.array_equal(fused[3], b)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -248,15 +249,15 @@ def hidden_bar(queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def test_what_the_mask_hides_costs_nothing() -> None:
     anchors, queries, true, start = scene()
     masked, visibility = hidden_bar(queries)
-    refiner = FastRefiner()
+    refiner = FastRefiner(region="frame")  # region=auto's foreground pass can take extreme poses of a cut query
     templates = refiner.anchor_templates(anchors)
     index = torch.arange(B)
     seen = refiner(masked, index, start, templates, visibility=visibility)
     assert float(corner_error_px(seen.query_H_anchor, true, (S, S)).max()) < 0.6
     # every pixel counted as it is: the cut-out print pulls the pose off
     blind = refiner(masked, index, start, templates)
-    assert float(corner_error_px(blind.query_H_anchor, true, (S, S)).median()) > 5.0
-    off = FastRefiner(visibility=False)(masked, index, start, templates, visibility=visibility)
+    assert float(corner_error_px(blind.query_H_anchor, true, (S, S)).max()) > 10.0
+    off = FastRefiner(region="frame", visibility=False)(masked, index, start, templates, visibility=visibility)
     assert torch.equal(off.query_H_anchor, blind.query_H_anchor)
     # a visibility of ones is the unweighted refinement
     ones = refiner(queries, index, start, templates, visibility=torch.ones(B, 1, S, S))
@@ -351,3 +352,14 @@ def test_compare_align_keeps_the_stage_pose_when_the_refinement_does_worse() -> 
     with_stage = compared(queries)
     assert recognizer.align.calls == 1 and compared.last.source.tolist() == [2] * n
     assert float(corner_error_px(with_stage.query_H_anchor, true, (S, S)).max()) < 1e-9
+
+
+def test_a_pose_that_turns_the_plane_over_or_sends_it_beyond_infinity_is_never_kept() -> None:
+    from matl.inference.fast_refine import _folds
+
+    assert not _folds(np.eye(3)) and not _folds(np.array([[0.9, 0.1, 0.1], [-0.1, 1.1, 0.0], [0.05, 0.02, 1.0]]))
+    assert _folds(np.diag([-1.0, 1.0, 1.0]))                     # mirrored: the plane seen from behind
+    assert _folds(np.array([[1.0, 0, 0], [0, 1.0, 0], [1.5, 0, 1.0]]))  # a corner at or beyond infinity
+    sheared = np.eye(3)
+    sheared[0, 1] = 1.2  # an affine map keeps the corners convex and turning one way
+    assert not _folds(sheared)
