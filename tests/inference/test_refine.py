@@ -105,7 +105,7 @@ def test_what_the_mask_hides_costs_nothing_and_the_best_unrefined_pose_is_kept()
     visibility = torch.ones(B, 1, S, S)
     visibility[..., :, 24:34] = 0.0  # a bar cut out by each query's mask
     masked = queries * visibility
-    refiner = PhotometricRefiner()
+    refiner = PhotometricRefiner(visibility=True)
     seen = refiner(masked, anchors, start, visibility=visibility)
     assert float(corner_error_px(seen.query_H_anchor, true, (S, S)).max()) < 0.6
     blind = refiner(masked, anchors, start)

@@ -249,7 +249,7 @@ def hidden_bar(queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def test_what_the_mask_hides_costs_nothing() -> None:
     anchors, queries, true, start = scene()
     masked, visibility = hidden_bar(queries)
-    refiner = FastRefiner(region="frame")  # region=auto's foreground pass can take extreme poses of a cut query
+    refiner = FastRefiner(region="frame", visibility=True)  # region=auto's foreground pass can take extreme poses of a cut query
     templates = refiner.anchor_templates(anchors)
     index = torch.arange(B)
     seen = refiner(masked, index, start, templates, visibility=visibility)
