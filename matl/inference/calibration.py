@@ -27,13 +27,17 @@ _log = logging.getLogger("matl.inference.api")  # the recognizer's logger, which
 CALIBRATION_FORMAT = 1  # bump when the calibration's samples change meaning: cached ones then miss their key
 CALIBRATION_PREFIX = ".matl_calibration_"
 
-#: out of the visibility (a mask that left it out); hidden share of the plane uniform in this range
+#: ``verify_statistic=patches``: one copy in this many (of each plane's ``calibration_warps``) gets a bar across it,
+#: drawn grey (a mask that kept the occluder) or set to 0 and out of the visibility (a mask that left it out), by turns
+CALIBRATION_OCCLUDED_EVERY = 8
+#: the hidden share of the plane under a bar, uniform in this range
 CALIBRATION_HIDDEN = (0.1, 0.5)
 
 
 def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The calibration's copies ``(P * W, 3, S, S)`` (plane-major, ``names`` one per plane) with a bar across half of
-    them (:data:`CALIBRATION_HIDDEN`), the copies' visibility ``(P * W, 1, S, S)`` and the rows changed.
+    """The calibration's copies ``(P * W, 3, S, S)`` (plane-major, ``names`` one per plane) with a bar across one in
+    :data:`CALIBRATION_OCCLUDED_EVERY` (:data:`CALIBRATION_HIDDEN`), the copies' visibility ``(P * W, 1, S, S)`` and the
+    rows changed.
 
     A bar is a band across the whole frame at a random angle whose two edges are quantiles of the plane's pixels
     projected on its normal, so it hides the drawn share of the plane; its grey level is uniform in [0.15, 0.85]
@@ -44,11 +48,12 @@ def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tens
     S = images.shape[-1]
     ys, xs = torch.meshgrid(torch.arange(S, dtype=torch.float64), torch.arange(S, dtype=torch.float64), indexing="ij")
     rows = []
+    every = CALIBRATION_OCCLUDED_EVERY
     for p, name in enumerate(names):
         g = torch.Generator().manual_seed(zlib.crc32(f"{name}/occluded".encode()))
         for j in range(per_plane):
             draws = torch.rand(4, generator=g, dtype=torch.float64)  # angle, hidden share, position, grey
-            if j % 2 == 0:
+            if j % every != every - 1:
                 continue
             row = p * per_plane + j
             plane = images[row].amax(0) > 0
@@ -61,7 +66,7 @@ def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tens
             start = float(draws[2]) * (1.0 - share)
             edges = torch.quantile(along[plane], torch.tensor([start, start + share], dtype=torch.float64))
             bar = ((along >= edges[0]) & (along <= edges[1])).to(images.device)
-            if j % 4 == 1:
+            if (p + j // every) % 2 == 0:
                 out[row][:, bar] = 0.15 + 0.7 * float(draws[3])
             else:
                 out[row][:, bar] = 0.0

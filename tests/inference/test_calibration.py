@@ -9,7 +9,12 @@ import pytest
 import torch
 
 from matl import Recognizer
-from matl.inference.calibration import CALIBRATION_HIDDEN, _occluded_copies, calibrate_open_set
+from matl.inference.calibration import (
+    CALIBRATION_HIDDEN,
+    CALIBRATION_OCCLUDED_EVERY,
+    _occluded_copies,
+    calibrate_open_set,
+)
 from tests.inference.test_api import read_rgb, stub_recognizer
 from tests.predict_helpers import make_files
 
@@ -58,23 +63,30 @@ def test_the_calibration_is_kept_by_save_and_beside_an_enrolled_folder(tmp_path:
 
 def test_the_calibration_copies_are_partly_occluded() -> None:
     S, W = 32, 8
-    images = torch.zeros(2 * W, 3, S, S)
-    images[:, :, 6:26, 4:28] = torch.rand(2 * W, 3, 20, 24, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
-    out, visibility, rows = _occluded_copies(images, ["a/front", "b/back"])
-    assert rows.tolist() == [j for j in range(2 * W) if j % 2 == 1]  # half of each plane's copies
-    again = _occluded_copies(images, ["a/front", "b/back"])
+    planes = 4
+    images = torch.zeros(planes * W, 3, S, S)
+    images[:, :, 6:26, 4:28] = torch.rand(planes * W, 3, 20, 24, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
+    names = ["a/front", "b/back", "c/top", "d/left"]
+    out, visibility, rows = _occluded_copies(images, names)
+    every = CALIBRATION_OCCLUDED_EVERY
+    assert rows.tolist() == [r for r in range(planes * W) if r % W % every == every - 1]  # one copy in `every`
+    again = _occluded_copies(images, names)
     assert torch.equal(again[0], out) and torch.equal(again[1], visibility)  # seeded by the planes' names
     plane = images[0].amax(0) > 0
-    for row in range(2 * W):
+    kinds = set()
+    for row in range(planes * W):
         changed = (out[row] != images[row]).any(0)
-        if row % 2 == 0:
+        if row not in rows.tolist():
             assert not bool(changed.any()) and float(visibility[row].min()) == 1.0
             continue
         share = float((changed & plane).sum() / plane.sum())
         low, high = CALIBRATION_HIDDEN
         assert low - 0.05 <= share <= high + 0.05
-        if row % 4 == 1:  # drawn grey: seen (a mask that kept the occluder)
-            assert float(visibility[row].min()) == 1.0 and float(out[row][:, changed].std()) < 1e-6
-        else:             # cut out: 0 and not seen
+        if float(visibility[row].min()) == 1.0:  # drawn grey: seen (a mask that kept the occluder)
+            assert float(out[row][:, changed].std()) < 1e-6 and float(out[row][:, changed].min()) >= 0.15
+            kinds.add("drawn")
+        else:                                    # cut out: 0 and not seen
             assert float(out[row][:, changed].abs().max()) == 0.0
             assert bool((visibility[row][0][changed] == 0).all()) and float(visibility[row].max()) == 1.0
+            kinds.add("cut")
+    assert kinds == {"drawn", "cut"}  # by turns

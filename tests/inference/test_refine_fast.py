@@ -249,7 +249,8 @@ def hidden_bar(queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def test_what_the_mask_hides_costs_nothing() -> None:
     anchors, queries, true, start = scene()
     masked, visibility = hidden_bar(queries)
-    refiner = FastRefiner(region="frame", visibility=True)  # region=auto's foreground pass can take extreme poses of a cut query
+    # region=auto's foreground pass can take extreme poses of a cut query: the whole frame here
+    refiner = FastRefiner(region="frame", visibility=True)
     templates = refiner.anchor_templates(anchors)
     index = torch.arange(B)
     seen = refiner(masked, index, start, templates, visibility=visibility)
@@ -283,7 +284,7 @@ def test_never_worse_keeps_the_unrefined_pose_of_lowest_loss() -> None:
     # a start far off, one step from it: it loses to a better unrefined pose given beside it
     far = true.clone()
     far[:, 0, 2] += 14.0
-    one = FastRefiner(iterations=1, region="frame")  # the whole frame: the outline keeps a step from far sane
+    one = FastRefiner(iterations=1, region="frame", visibility=True)  # the whole frame: a step from far stays sane
     frame = one.anchor_templates(anchors)
     kept = one(queries, index, far, frame, alternatives=torch.stack([far, true], 1))
     assert kept.source.tolist() == [3] * B and torch.equal(kept.query_H_anchor, true.double())
