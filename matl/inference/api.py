@@ -193,11 +193,12 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
             own pose does not verify. A re-ranked answer then carries the refined pose.
         verify_statistic: ``patches`` (over the part of the anchor's plane the query shows, its mask warped
             by the pose: the lower of ``1 - ZNCC`` over it and a strict trimmed mean of per-patch ``1 - ZNCC``, so
-            an occluder the mask missed costs only the patches it covers; half of the calibration's copies are
-            partly occluded too) or ``global`` (one ZNCC over the plane, every copy whole);
+            an occluder the mask missed costs only the patches it covers) or ``global`` (one ZNCC over the plane);
             :mod:`matl.inference.verify`.
         verify_min_visible: ``patches``: an answer whose pose shows less than this share of the anchor's plane
             does not verify (judged by the ratio test).
+        verify_occluded_copies: ``patches``: the share of the calibration's copies with an occluder across them
+            (:func:`matl.inference.calibration._occluded_copies`); 0 (default): whole copies.
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -228,6 +229,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         self.threshold_option = settings.threshold
         self.verify_refine = settings.verify_refine
         self.verify_statistic, self.verify_min_visible = settings.verify_statistic, settings.verify_min_visible
+        self.verify_occluded_copies = settings.verify_occluded_copies
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,

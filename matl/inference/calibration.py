@@ -27,17 +27,16 @@ _log = logging.getLogger("matl.inference.api")  # the recognizer's logger, which
 CALIBRATION_FORMAT = 1  # bump when the calibration's samples change meaning: cached ones then miss their key
 CALIBRATION_PREFIX = ".matl_calibration_"
 
-#: ``verify_statistic=patches``: one copy in this many (of each plane's ``calibration_warps``) gets a bar across it,
-#: drawn grey (a mask that kept the occluder) or set to 0 and out of the visibility (a mask that left it out), by turns
-CALIBRATION_OCCLUDED_EVERY = 8
-#: the hidden share of the plane under a bar, uniform in this range
+#: ``verify_occluded_copies``: the hidden share of the plane under a copy's bar, uniform in this range
 CALIBRATION_HIDDEN = (0.1, 0.5)
 
 
-def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _occluded_copies(images: torch.Tensor, names: list[str], every: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The calibration's copies ``(P * W, 3, S, S)`` (plane-major, ``names`` one per plane) with a bar across one in
-    :data:`CALIBRATION_OCCLUDED_EVERY` (:data:`CALIBRATION_HIDDEN`), the copies' visibility ``(P * W, 1, S, S)`` and the
-    rows changed.
+    ``every`` of each plane's (:data:`CALIBRATION_HIDDEN` of the plane hidden), drawn grey (a mask that kept the
+    occluder) or set to 0 and out of the visibility (a mask that left it out) by turns; the copies' visibility
+    ``(P * W, 1, S, S)`` and the rows changed.
 
     A bar is a band across the whole frame at a random angle whose two edges are quantiles of the plane's pixels
     projected on its normal, so it hides the drawn share of the plane; its grey level is uniform in [0.15, 0.85]
@@ -48,7 +47,6 @@ def _occluded_copies(images: torch.Tensor, names: list[str]) -> tuple[torch.Tens
     S = images.shape[-1]
     ys, xs = torch.meshgrid(torch.arange(S, dtype=torch.float64), torch.arange(S, dtype=torch.float64), indexing="ij")
     rows = []
-    every = CALIBRATION_OCCLUDED_EVERY
     for p, name in enumerate(names):
         g = torch.Generator().manual_seed(zlib.crc32(f"{name}/occluded".encode()))
         for j in range(per_plane):
@@ -138,8 +136,10 @@ class OpenSetCalibration:
             images = (self._calibration_images(self._planes)
                       if self.open_set_statistic == "verify" and self._verifying() else None)
             visibility = None
-            if images is not None and self.verify_statistic == "patches":  # a share of the copies partly hidden
-                images, visibility, rows = _occluded_copies(images, [f"{p.object}/{p.name}" for p in self._planes])
+            share = self.verify_occluded_copies
+            if images is not None and self.verify_statistic == "patches" and share > 0:  # some copies partly hidden
+                images, visibility, rows = _occluded_copies(images, [f"{p.object}/{p.name}" for p in self._planes],
+                                                            max(1, round(1.0 / share)))
                 inner = self._gallery_recognizer()
                 features = features.clone()
                 features[rows] = torch.cat([inner.embed_queries(images[rows[i:i + 256]])[0].float().cpu()
@@ -192,7 +192,8 @@ class OpenSetCalibration:
                    "num_anchors": self.num_anchors, "statistic": self.open_set_statistic,
                    "warps": self.calibration_warps, "homography": getattr(self.model, "homography_config", None),
                    "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine,
-                               self.verify_statistic, self.verify_min_visible] if self._verifying() else None),
+                               self.verify_statistic, self.verify_min_visible, self.verify_occluded_copies]
+                              if self._verifying() else None),
                    "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
                    "search": self.options()["search"], "device": self.device.type, "variant": self._variant}
         return json.dumps(options, sort_keys=True, default=str) + "|planes:" + digest.hexdigest()

@@ -270,7 +270,7 @@ class FastRefiner:
                  threads: int | None = None, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
                  auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined",
                  compare_align: bool = False, match_upscale: float | None = 1.2, cache: int = 4096,
-                 visibility: bool = False, visibility_band: int = 0) -> None:
+                 visibility: bool = True, visibility_band: int = 0) -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
         if not per_level or min(per_level) < 0:

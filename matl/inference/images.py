@@ -164,6 +164,3 @@ def _query_visibility(prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | 
                                             np.clip(m, 0.0, 1.0).astype(np.float32))[None], size, fill)[0][:1]
               for m, (_, rgb, _) in zip(masks, prepared, strict=True)]
     return torch.stack(framed).to(device)
-
-
-#: ``verify_statistic=patches``: the calibration's copies ``j`` (of each plane's ``calibration_warps``) with ``j % 4``

@@ -78,6 +78,7 @@ class RecognizerOptions:
     verify_refine: bool = True
     verify_statistic: str = "patches"
     verify_min_visible: float = 0.3
+    verify_occluded_copies: float = 0.0
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -113,6 +114,10 @@ class RecognizerOptions:
         if not _number(self.verify_min_visible) or not 0.0 <= self.verify_min_visible <= 1.0:
             raise MatlError(f"verify_min_visible={self.verify_min_visible!r} is invalid: use a share of the plane in "
                             "[0, 1] (e.g. 0.3)")
+        if not _number(self.verify_occluded_copies) or not 0.0 <= self.verify_occluded_copies <= 1.0:
+            raise MatlError(f"verify_occluded_copies={self.verify_occluded_copies!r} is invalid: use a share of the "
+                            "calibration's copies in [0, 1] (0: whole copies)")
+        self.verify_occluded_copies = float(self.verify_occluded_copies)
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)

@@ -146,7 +146,7 @@ class PhotometricRefiner:
     def __init__(self, iterations: int = 8, levels: int = 3, step: float = 1.0, loss: str = "huber",
                  delta: float = 0.5, damping: float = 1e-3, min_size: int = 8, min_std: float = 0.02,
                  max_condition: float = 1e4, tolerance: float = 0.01, grayscale: bool = True,
-                 match_upscale: float | None = 1.2, visibility: bool = False, visibility_band: int = 0) -> None:
+                 match_upscale: float | None = 1.2, visibility: bool = True, visibility_band: int = 0) -> None:
         if int(iterations) < 0:
             raise ValueError(f"refiner.iterations must be >= 0, got {iterations}")
         if int(levels) < 1:

@@ -9,12 +9,8 @@ import pytest
 import torch
 
 from matl import Recognizer
-from matl.inference.calibration import (
-    CALIBRATION_HIDDEN,
-    CALIBRATION_OCCLUDED_EVERY,
-    _occluded_copies,
-    calibrate_open_set,
-)
+from matl.inference.calibration import CALIBRATION_HIDDEN, _occluded_copies, calibrate_open_set
+from matl.utils.errors import MatlError
 from tests.inference.test_api import read_rgb, stub_recognizer
 from tests.predict_helpers import make_files
 
@@ -67,10 +63,10 @@ def test_the_calibration_copies_are_partly_occluded() -> None:
     images = torch.zeros(planes * W, 3, S, S)
     images[:, :, 6:26, 4:28] = torch.rand(planes * W, 3, 20, 24, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
     names = ["a/front", "b/back", "c/top", "d/left"]
-    out, visibility, rows = _occluded_copies(images, names)
-    every = CALIBRATION_OCCLUDED_EVERY
+    every = 2
+    out, visibility, rows = _occluded_copies(images, names, every)
     assert rows.tolist() == [r for r in range(planes * W) if r % W % every == every - 1]  # one copy in `every`
-    again = _occluded_copies(images, names)
+    again = _occluded_copies(images, names, every)
     assert torch.equal(again[0], out) and torch.equal(again[1], visibility)  # seeded by the planes' names
     plane = images[0].amax(0) > 0
     kinds = set()
@@ -90,3 +86,8 @@ def test_the_calibration_copies_are_partly_occluded() -> None:
             assert bool((visibility[row][0][changed] == 0).all()) and float(visibility[row].max()) == 1.0
             kinds.add("cut")
     assert kinds == {"drawn", "cut"}  # by turns
+    # the recognizer's option: a share of the copies (0: whole copies, the default)
+    assert stub_recognizer().verify_occluded_copies == 0.0
+    assert stub_recognizer(verify_occluded_copies=0.125).verify_occluded_copies == 0.125
+    with pytest.raises(MatlError, match="verify_occluded_copies"):
+        stub_recognizer(verify_occluded_copies=1.5)
