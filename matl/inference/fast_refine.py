@@ -58,23 +58,37 @@ overhead) and the rest of an iteration is one or two calls of numba-compiled fun
 (:mod:`matl.inference.fast_refine_kernels`: the fit, the loss and the normal equations in one, the damped
 solve and the update in the other); a batch is a loop over its queries. ``threads`` sets OpenCV's threads
 during the refinement (null: OpenCV's own; changing them costs about 0.1 ms a call).
+
+This module holds :class:`FastRefiner` (its settings, the per-query descent and the batch call); what it
+precomputes per anchor (:class:`~matl.inference.fast_refine_anchors.AnchorLevel`,
+:class:`~matl.inference.fast_refine_anchors.AnchorTemplates`) and the pyramid and luminance it shares with the
+queries are in :mod:`matl.inference.fast_refine_anchors`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from matl.geometry import degenerate_matrix, sample_by_pixels
 from matl.inference import fast_refine_kernels as kernels
+from matl.inference.fast_refine_anchors import (
+    CORNERS,
+    FOREGROUND,
+    LUMA,
+    AnchorLevel,
+    AnchorTemplates,
+    anchor_levels,
+    blurred,
+    image_pyramid,
+    luminance,
+    outside_mask,
+)
 from matl.inference.refine import RefineResult, at_resolution
 from matl.utils.errors import MatlError
 from matl.utils.timing import opencv_threads
@@ -84,143 +98,19 @@ __all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefi
 FAST_LOSSES = kernels.LOSS_CODES
 REGIONS = ("frame", "foreground", "auto")
 STARTS = ("stn", "align")
-_FOREGROUND = 1e-3  # an anchor pixel brighter than this in any channel is foreground (backgrounds are 0)
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as PhotometricRefiner
-#: the normalised image corners, homogeneous ``(4, 3)``
-_CORNERS = np.array([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
-
-
-@dataclass
-class AnchorLevel:
-    """What one anchor contributes at one pyramid level (``n`` pixels carry a gradient).
-
-    Attributes:
-        image: ``(h, w)`` float32 luminance, 0 off the foreground.
-        fg: ``(h, w)`` float32 foreground indicator ``F`` (the gain / bias fit's support).
-        region: ``(h, w)`` float32 0/1 pixels of the loss (``region=foreground``); None: all (``frame``).
-        inner: ``(h, w)`` float32 0/1 the foreground less a band along its outline (``visibility_band``), where the
-            query's visibility weighs the pixels.
-        size: ``(h, w)`` of the level.
-        count: pixels of ``F``; ``mean`` ``A``'s mean over them, ``var`` ``sum_F (A - mean)^2``.
-        total: ``sum(region)``: the loss is a mean over these pixels.
-        index: ``(n,)`` int32 flat pixel indices where ``sd`` is non-zero (inside the region).
-        sdT: ``(8, n)`` float32 steepest-descent images ``d A(W(x; p)) / dp`` at ``p = 0`` (normalised ``p``),
-            transposed.
-        hessian: ``(8, 8)`` float64 ``sd^T sd``.
-        norm_H_pixel: ``(3, 3)`` this level's pixels -> full-resolution normalised coordinates.
-        pixel_H_norm: its inverse.
-    """
-
-    image: np.ndarray
-    fg: np.ndarray
-    region: np.ndarray | None
-    inner: np.ndarray
-    size: tuple[int, int]
-    count: float
-    mean: float
-    var: float
-    total: float
-    index: np.ndarray
-    sdT: np.ndarray
-    hessian: np.ndarray
-    norm_H_pixel: np.ndarray
-    pixel_H_norm: np.ndarray
-    #: derived once (not arguments): ``1 / var``, ``1 / count``, and
-    #: ``corner_J`` ``(8, 8)``: ``dp @ corner_J`` is the motion of the 4 corners in this level's pixels
-    inv_var: float = field(init=False, repr=False)
-    inv_count: float = field(init=False, repr=False)
-    corner_J: np.ndarray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        h, w = self.size
-        self.inv_var = 1.0 / max(self.var, 1e-12)
-        self.inv_count = 1.0 / max(self.count, 1.0)
-        self.corner_J = _CORNER_J * np.array([(w - 1) / 2.0, (h - 1) / 2.0] * 4)
-
-    @property
-    def nbytes(self) -> int:
-        arrays = (self.image, self.fg, self.inner, self.index, self.sdT, self.hessian)
-        return sum(a.nbytes for a in arrays) + (self.region.nbytes if self.region is not None else 0)
-
-
-@dataclass
-class AnchorTemplates:
-    """:class:`FastRefiner`'s data of a gallery: per anchor, one :class:`AnchorLevel` per level, finest first.
-
-    Attributes:
-        anchors: one list of levels per anchor.
-        image_size: ``(H, W)`` of the anchors.
-        seconds: time taken to compute them.
-    """
-
-    anchors: list[list[AnchorLevel]]
-    image_size: tuple[int, int]
-    seconds: float = field(default=0.0)
-    #: ``region=auto``: per anchor, its ``region=foreground`` levels (None otherwise)
-    foreground: list[list[AnchorLevel]] | None = None
-    #: ``region=auto``: per anchor, ``(H, W)`` uint8 1 where the anchor frame is farther than ``auto_band`` px
-    #: from the anchor's foreground (None otherwise)
-    outside: list[np.ndarray] | None = None
-    #: the anchor images ``(G, 3, H, W)`` they were computed from (a reference: an anchor at another resolution is
-    #: computed from them when first needed)
-    source: torch.Tensor | None = None
-    #: ``(anchor, side) -> (levels, foreground levels, outside)`` of anchors at another resolution, least recently
-    #: used first
-    resampled: OrderedDict = field(default_factory=OrderedDict, repr=False)
-
-    def __len__(self) -> int:
-        return len(self.anchors)
-
-    @property
-    def nbytes(self) -> int:
-        """Memory held, bytes."""
-        held = sum(level.nbytes for anchor in self.anchors for level in anchor)
-        held += sum(level.nbytes for anchor in self.foreground or () for level in anchor)
-        held += sum(level.nbytes for levels, fg, _ in self.resampled.values() for level in (*levels, *(fg or ())))
-        held += sum(out.nbytes for _, _, out in self.resampled.values() if out is not None)
-        return held + sum(mask.nbytes for mask in self.outside or ())
-
-
-def _corner_jacobian() -> np.ndarray:
-    """``(8, 8)``: ``p @ J`` is the first-order motion ``(x0, y0, x1, y1, ...)`` of the 4 normalised corners
-    under ``I + D(p)``."""
-    rows = []
-    for x, y in _CORNERS[:, :2]:
-        rows.append([x, y, 1.0, 0.0, 0.0, 0.0, -x * x, -x * y])
-        rows.append([0.0, 0.0, 0.0, x, y, 1.0, -x * y, -y * y])
-    return np.array(rows).T
-
-
-_CORNER_J = _corner_jacobian()
 
 
 def _folds(H: np.ndarray) -> bool:
     """Whether the normalised pose ``H`` turns the plane over (mirrors it) or sends part of it to or beyond infinity:
     an image corner it maps lies there, or the mapped corners are not a convex quadrilateral of the frame's own
     orientation (no camera sees a plane so)."""
-    mapped = _CORNERS @ H.T
+    mapped = CORNERS @ H.T
     if not bool((mapped[:, 2] > 1e-9).all()):
         return True
     xy = mapped[:, :2] / mapped[:, 2:]
     edges = np.roll(xy, -1, axis=0) - xy
     turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
     return not bool((turns > 0).all())  # the frame's corners, in this order, turn one way: every turn positive
-
-
-def _pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:
-    """Finest first; level ``l``'s pixel ``i`` is centred on the full image's pixel ``2^l i`` (``cv2.pyrDown``)."""
-    out = [image]
-    while len(out) < levels and min(out[-1].shape) // 2 >= min_size:
-        out.append(cv2.pyrDown(out[-1]))
-    return out
-
-
-def _luminance(images: torch.Tensor) -> list[tuple[np.ndarray, float]]:
-    """``(B, 3, H, W)`` (or ``(B, 1, H, W)``) -> per image, its ``(H, W)`` float32 luminance and the std of its
-    foreground (pixels above ``_FOREGROUND``)."""
-    array = images.detach()
-    array = (array if array.dtype == torch.float32 and array.device.type == "cpu" else array.float().cpu()).numpy()
-    return [kernels.luminance(image, _LUMA, _FOREGROUND) for image in array]
 
 
 class FastRefiner:
@@ -334,64 +224,15 @@ class FastRefiner:
         return self.iterations
 
     # ------------------------------------------------------------------------------ anchors
-    def _norm_H_pixel(self, level: int, size: tuple[int, int]) -> np.ndarray:
-        """Level pixels -> normalised coordinates of the full image (``align_corners=True``)."""
-        H, W = size
-        f = float(2 ** level)
-        return np.array([[2.0 * f / (W - 1), 0.0, -1.0], [0.0, 2.0 * f / (H - 1), -1.0], [0.0, 0.0, 1.0]])
-
     def _blurred(self, image: np.ndarray) -> np.ndarray:
         """``image`` ``(H, W)`` under a Gaussian of std ``blur`` px (zeros outside), or itself (``blur=0``)."""
-        if self.blur <= 0:
-            return image
-        return cv2.GaussianBlur(image, (0, 0), self.blur, borderType=cv2.BORDER_CONSTANT)
+        return blurred(image, self.blur)
 
     def _anchor(self, gray: np.ndarray, fg: np.ndarray, kinds: Sequence[str]) -> list[list[AnchorLevel]]:
-        """One anchor's levels for each region kind in ``kinds`` (``frame`` / ``foreground``), finest first; the
-        pyramid and the gradients are computed once for all of them."""
-        size = gray.shape
-        gray = self._blurred(gray)
-        out: list[list[AnchorLevel]] = [[] for _ in kinds]
-        masks = _pyramid(fg, self.levels, self.min_size)
-        kernel = np.ones((2 * self.erode + 1, 2 * self.erode + 1), np.uint8)
-        for level, image in enumerate(_pyramid(gray, self.levels, self.min_size)):
-            h, w = image.shape
-            mask = (masks[level] > _FOREGROUND).astype(np.float32)  # the blurred support at coarse levels
-            image = image * mask
-            padded = np.pad(image, 1, mode="edge")  # central differences, one-sided at the border
-            gx = (padded[1:-1, 2:] - padded[1:-1, :-2]) * 0.5
-            gy = (padded[2:, 1:-1] - padded[:-2, 1:-1]) * 0.5
-            norm_H_pixel = self._norm_H_pixel(level, size)
-            pixel_H_norm = np.linalg.inv(norm_H_pixel)
-            gx, gy = gx / norm_H_pixel[0, 0], gy / norm_H_pixel[1, 1]  # per normalised unit
-            textured = (gx != 0) | (gy != 0)
-            band = max(1, round(self.visibility_band / 2 ** level)) if self.visibility_band > 0 else 0
-            inner = (cv2.erode(mask, np.ones((2 * band + 1, 2 * band + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                               borderValue=0) if band else mask).astype(np.float32)
-            for levels, kind in zip(out, kinds, strict=True):
-                region = None
-                if kind != "frame":
-                    region = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) if self.erode \
-                        else mask.copy()
-                inside = textured if region is None else textured & (region > 0)
-                index = np.flatnonzero(inside).astype(np.int32)
-                x = (index % w) * norm_H_pixel[0, 0] - 1.0
-                y = (index // w) * norm_H_pixel[1, 1] - 1.0
-                gxs, gys = gx.ravel()[index], gy.ravel()[index]
-                radial = gxs * x + gys * y
-                sd = np.stack([gxs * x, gxs * y, gxs, gys * x, gys * y, gys, -radial * x, -radial * y])  # (8, n)
-                fit = mask if region is None else region  # the gain / bias fit's support: the loss's foreground
-                count = float(fit.sum())
-                mean = float((image * fit).sum() / max(count, 1.0))
-                var = float(((image - mean) ** 2 * fit).sum())
-                levels.append(AnchorLevel(
-                    np.ascontiguousarray(image if region is None else image * region, dtype=np.float32),
-                    np.ascontiguousarray(fit, dtype=np.float32),
-                    None if region is None else np.ascontiguousarray(region, dtype=np.float32),
-                    np.ascontiguousarray(inner), (int(h), int(w)),
-                    count, mean, var, float(max(h * w if region is None else region.sum(), 1.0)), index,
-                    np.ascontiguousarray(sd, dtype=np.float32), sd @ sd.T, norm_H_pixel, pixel_H_norm))
-        return out
+        """One anchor's levels for each region kind in ``kinds`` (``frame`` / ``foreground``), finest first
+        (:func:`~matl.inference.fast_refine_anchors.anchor_levels` with this refiner's settings)."""
+        return anchor_levels(gray, fg, kinds, self.levels, self.min_size, self.erode, self.visibility_band,
+                             self.blur)
 
     @torch.no_grad()
     def anchor_templates(self, anchors: torch.Tensor) -> AnchorTemplates:
@@ -400,8 +241,8 @@ class FastRefiner:
             raise MatlError(f"anchors must be (G, C, H, W), got {tuple(anchors.shape)}")
         start = time.perf_counter()
         kernels.warm_up()  # compiled (or loaded from numba's cache) here, at enrolment, not at the first query
-        gray = [image for image, _ in _luminance(anchors)]
-        fg = (anchors.detach().float().cpu() > _FOREGROUND).any(dim=1).numpy().astype(np.float32)
+        gray = [image for image, _ in luminance(anchors)]
+        fg = (anchors.detach().float().cpu() > FOREGROUND).any(dim=1).numpy().astype(np.float32)
         # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
         kinds = self._kinds()
         per_anchor = [self._anchor(gray[i], fg[i], kinds) for i in range(len(gray))]
@@ -409,9 +250,7 @@ class FastRefiner:
         foreground = outside = None
         if self.region == "auto":
             foreground = [levels[1] for levels in per_anchor]
-            size = 2 * self.auto_band + 1
-            kernel = np.ones((size, size), np.uint8)
-            outside = [(cv2.dilate((f > 0).astype(np.uint8), kernel) == 0).astype(np.uint8) for f in fg]
+            outside = [outside_mask(f, self.auto_band) for f in fg]
         return AnchorTemplates(templates, (int(anchors.shape[-2]), int(anchors.shape[-1])),
                                time.perf_counter() - start, foreground, outside, anchors.detach())
 
@@ -438,14 +277,13 @@ class FastRefiner:
             templates.resampled.move_to_end(key)
             return found
         image = at_resolution(templates.source[k:k + 1].detach().float().cpu(), side)
-        gray = _luminance(image)[0][0]
-        fg = (image[0] > _FOREGROUND).any(dim=0).numpy().astype(np.float32)
+        gray = luminance(image)[0][0]
+        fg = (image[0] > FOREGROUND).any(dim=0).numpy().astype(np.float32)
         kinds = self._kinds()
         levels = self._anchor(gray, fg, kinds)
         outside = None
         if self.region == "auto":
-            band = 2 * self.auto_band + 1
-            outside = (cv2.dilate((fg > 0).astype(np.uint8), np.ones((band, band), np.uint8)) == 0).astype(np.uint8)
+            outside = outside_mask(fg, self.auto_band)
         found = (levels[0], levels[1] if len(kinds) > 1 else None, outside)
         if self.cache > 0:
             templates.resampled[key] = found
@@ -570,13 +408,13 @@ class FastRefiner:
         H0n = full.norm_H_pixel @ H0 @ full.pixel_H_norm  # normalised (align_corners=True), as PhotometricRefiner
         H0n = H0n / H0n[2, 2]
         if std is None:
-            std = kernels.luminance(query[None], _LUMA, _FOREGROUND)[1]
+            std = kernels.luminance(query[None], LUMA, FOREGROUND)[1]
         scale = max(std, self.min_std)
         raw = query
         query = self._blurred(query)
-        pyramid = _pyramid(query, min(self.levels, len(anchor)), self.min_size)
-        seen = None if visible is None else _pyramid(np.ascontiguousarray(visible, dtype=np.float32), len(pyramid),
-                                                     self.min_size)
+        pyramid = image_pyramid(query, min(self.levels, len(anchor)), self.min_size)
+        seen = None if visible is None else image_pyramid(np.ascontiguousarray(visible, dtype=np.float32),
+                                                          len(pyramid), self.min_size)
         # every pixel as it is: the silhouette pulls from afar (a pose that puts the plane over the masked-out
         # background is far off, not hidden)
         H, loss, warped = self._descend(pyramid, anchor, H0n, scale, timing)
@@ -638,7 +476,7 @@ class FastRefiner:
             raise MatlError(f"queries are {size} but the anchors {templates.image_size}: refine at the gallery's size")
         if visibility is not None and tuple(visibility.shape) != (B, 1, *size):
             raise MatlError(f"visibility must be (B, 1, H, W) = {(B, 1, *size)}, got {tuple(visibility.shape)}")
-        gray = _luminance(queries)
+        gray = luminance(queries)
         starts = query_H_anchor.detach().double().cpu().numpy()
         index = anchor_index.detach().cpu().numpy()
         seen = None if visibility is None or not self.visibility else visibility.detach().float().cpu().numpy()[:, 0]
