@@ -119,29 +119,24 @@ def objective(warped: np.ndarray, image: np.ndarray, fg: np.ndarray, region: np.
     return total, r, gain
 
 
-@njit(**_REDUCE)
-def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, gain: float,
-                     loss_code: int, delta: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(A (8, 8), b (8,))`` float64 of the iteratively re-weighted Gauss-Newton step ``A dp = b``.
+@njit(inline="always")
+def _robust_weight(value: float, loss_code: int, delta: float) -> float:
+    """The robust loss's weight of a residual ``value``: 1 (l2), ``min(1, delta / |r|)`` (Huber) or
+    ``1 / (1 + (r / delta)^2)`` (Cauchy). Inlined (numba IR) into its callers, which compile it with their flags."""
+    w = 1.0
+    if loss_code == 1:
+        a = abs(value)
+        if a > delta:
+            w = delta / a
+    elif loss_code == 2:
+        w = 1.0 / (1.0 + (value / delta) ** 2)
+    return w
 
-    ``A = sum_j w_j sd_j sd_j^T`` and ``b = sum_j w_j r_j sd_j / gain`` over the textured pixels ``index``
-    (``(n,)`` flat indices into ``r`` ``(h, w)``; ``sdT`` ``(8, n)`` their steepest-descent images), ``w`` the robust
-    loss's weight (``l2``: 1; Huber: ``min(1, delta / |r|)``; Cauchy: ``1 / (1 + (r / delta)^2)``). ``hessian`` is the
-    unweighted ``sd^T sd``: l2 returns it, Huber corrects it on the pixels beyond ``delta`` only.
-    """
-    flat = r.ravel()
-    n = index.shape[0]
-    weighted = np.empty(n)  # w_j r_j
-    weights = np.ones(n)
-    for j in range(n):
-        value = np.float64(flat[index[j]])
-        if loss_code == 1:
-            a = abs(value)
-            if a > delta:
-                weights[j] = delta / a
-        elif loss_code == 2:
-            weights[j] = 1.0 / (1.0 + (value / delta) ** 2)
-        weighted[j] = value * weights[j]
+
+@njit(inline="always")
+def _gradient(sdT: np.ndarray, weighted: np.ndarray, gain: float) -> np.ndarray:
+    """``b (8,)`` float64, ``sum_j weighted_j sd_j / gain`` (``sdT`` ``(8, n)``, ``weighted`` ``(n,)``)."""
+    n = weighted.shape[0]
     b = np.zeros(8)
     for k in range(8):
         row = sdT[k]
@@ -149,12 +144,18 @@ def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian:
         for j in range(n):
             acc += row[j] * weighted[j]
         b[k] = acc / gain
-    if loss_code == 0:
-        return hessian.astype(np.float64), b
-    if loss_code == 1:  # the Hessian less (1 - w) of each pixel beyond delta (few of them)
+    return b
+
+
+@njit(inline="always")
+def _hessian(weights: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, correct: bool) -> np.ndarray:
+    """``A (8, 8)`` float64, ``sum_j weights_j sd_j sd_j^T``: with ``correct`` the unweighted ``hessian`` less
+    ``(1 - weights_j) sd_j sd_j^T`` on the pixels whose weight is not 1 (few of them), else summed afresh."""
+    n = weights.shape[0]
+    if correct:
         A = hessian.astype(np.float64)
         for j in range(n):
-            if weights[j] < 1.0:
+            if weights[j] != 1.0:
                 for k in range(8):
                     sk = np.float64(sdT[k, j]) * (weights[j] - 1.0)
                     for m in range(k + 1):
@@ -170,7 +171,32 @@ def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian:
     for k in range(8):  # the lower triangle was accumulated
         for m in range(k):
             A[m, k] = A[k, m]
-    return A, b
+    return A
+
+
+@njit(**_REDUCE)
+def normal_equations(r: np.ndarray, index: np.ndarray, sdT: np.ndarray, hessian: np.ndarray, gain: float,
+                     loss_code: int, delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(A (8, 8), b (8,))`` float64 of the iteratively re-weighted Gauss-Newton step ``A dp = b``.
+
+    ``A = sum_j w_j sd_j sd_j^T`` and ``b = sum_j w_j r_j sd_j / gain`` over the textured pixels ``index``
+    (``(n,)`` flat indices into ``r`` ``(h, w)``; ``sdT`` ``(8, n)`` their steepest-descent images), ``w`` the robust
+    loss's weight (``l2``: 1; Huber: ``min(1, delta / |r|)``; Cauchy: ``1 / (1 + (r / delta)^2)``). ``hessian`` is the
+    unweighted ``sd^T sd``: l2 returns it, Huber corrects it on the pixels beyond ``delta`` only.
+    """
+    flat = r.ravel()
+    n = index.shape[0]
+    weighted = np.empty(n)  # w_j r_j
+    weights = np.empty(n)
+    for j in range(n):
+        value = np.float64(flat[index[j]])
+        weights[j] = _robust_weight(value, loss_code, delta)
+        weighted[j] = value * weights[j]
+    b = _gradient(sdT, weighted, gain)
+    if loss_code == 0:
+        return hessian.astype(np.float64), b
+    # Huber: the Hessian less (1 - w) of each pixel beyond delta (few of them)
+    return _hessian(weights, sdT, hessian, loss_code == 1), b
 
 
 @njit(**_JIT)
@@ -285,45 +311,14 @@ def normal_equations_weighted(r: np.ndarray, weight: np.ndarray, index: np.ndarr
     flat, flat_u = r.ravel(), weight.ravel()
     n = index.shape[0]
     weights = np.empty(n)  # u_j w_j
-    b = np.zeros(8)
     weighted = np.empty(n)
     for j in range(n):
         value = np.float64(flat[index[j]])
-        w = 1.0
-        if loss_code == 1:
-            a = abs(value)
-            if a > delta:
-                w = delta / a
-        elif loss_code == 2:
-            w = 1.0 / (1.0 + (value / delta) ** 2)
-        weights[j] = w * flat_u[index[j]]
+        weights[j] = _robust_weight(value, loss_code, delta) * flat_u[index[j]]
         weighted[j] = value * weights[j]
-    for k in range(8):
-        row = sdT[k]
-        acc = 0.0
-        for j in range(n):
-            acc += row[j] * weighted[j]
-        b[k] = acc / gain
-    if loss_code != 2:  # the Hessian less (1 - u w) of each pixel whose combined weight is not 1
-        A = hessian.astype(np.float64)
-        for j in range(n):
-            if weights[j] != 1.0:
-                for k in range(8):
-                    sk = np.float64(sdT[k, j]) * (weights[j] - 1.0)
-                    for m in range(k + 1):
-                        A[k, m] += sk * sdT[m, j]
-    else:
-        A = np.zeros((8, 8))
-        for k in range(8):
-            for m in range(k + 1):
-                acc = 0.0
-                for j in range(n):
-                    acc += np.float64(sdT[k, j]) * sdT[m, j] * weights[j]
-                A[k, m] = acc
-    for k in range(8):  # the lower triangle was accumulated
-        for m in range(k):
-            A[m, k] = A[k, m]
-    return A, b
+    b = _gradient(sdT, weighted, gain)
+    # l2 and Huber: the Hessian less (1 - u w) of each pixel whose combined weight is not 1
+    return _hessian(weights, sdT, hessian, loss_code != 2), b
 
 
 @njit(**_JIT)
