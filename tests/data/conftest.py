@@ -7,11 +7,21 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch
 
 from matl.data.canonical import CanonicalSet
 from matl.data.catalog import SyntheticCatalog
 from matl.data.catalog.models import product_model
 from matl.data.catalog.shapes import ProductModel
+
+
+def masked_prints(B: int, S: int, rows: tuple[int, int], cols: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``B`` random RGB prints in [0.1, 0.9] (seed 0) on the rectangle ``rows`` x ``cols`` of an ``S`` x ``S`` frame,
+    black elsewhere, and their masks ``(B, 1, S, S)``."""
+    masks = torch.zeros(B, 1, S, S)
+    masks[:, :, rows[0]:rows[1], cols[0]:cols[1]] = 1.0
+    images = torch.rand(B, 3, S, S, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
+    return images * masks, masks
 
 
 class PatternSource:

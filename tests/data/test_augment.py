@@ -8,14 +8,11 @@ import torch
 from matl.data.augment import CameraAugment, Photometric, imperfect_masks, jpeg_round_trip
 from matl.data.datamodule import TripletDataModule
 from matl.utils.errors import MatlError
-from tests.data.conftest import PatternSource
+from tests.data.conftest import PatternSource, masked_prints
 
 
 def _square(B: int = 4, S: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
-    masks = torch.zeros(B, 1, S, S)
-    masks[:, :, 8:24, 8:24] = 1.0
-    images = torch.rand(B, 3, S, S, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
-    return images * masks, masks
+    return masked_prints(B, S, (8, 24), (8, 24))
 
 
 def _augment(**kwargs) -> CameraAugment:

@@ -8,14 +8,11 @@ import torch
 from matl.data.datamodule import TripletDataModule
 from matl.data.occlusion import OccludeQueries
 from matl.utils.errors import MatlError
-from tests.data.conftest import PatternSource
+from tests.data.conftest import PatternSource, masked_prints
 
 
 def _products(B: int = 6, S: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
-    masks = torch.zeros(B, 1, S, S)
-    masks[:, :, 10:38, 8:40] = 1.0
-    images = torch.rand(B, 3, S, S, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.1
-    return images * masks, masks
+    return masked_prints(B, S, (10, 38), (8, 40))
 
 
 def _occlude(**kwargs) -> OccludeQueries:
