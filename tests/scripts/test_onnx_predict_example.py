@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -15,8 +14,9 @@ import pytest
 import torch
 
 from matl.models.checkpoint import PRETRAINED
+from tests.scripts.conftest import SCRIPTS, load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "onnx_predict_example.py"
+SCRIPT = SCRIPTS / "onnx_predict_example.py"
 GALLERY_HW = (120, 160)
 pytest.importorskip("onnxruntime", reason="format=onnx needs onnxruntime (a dependency of matl)")
 needs_model = pytest.mark.skipif(not PRETRAINED.is_file(), reason=f"{PRETRAINED} is not in this checkout")
@@ -24,11 +24,7 @@ needs_model = pytest.mark.skipif(not PRETRAINED.is_file(), reason=f"{PRETRAINED}
 
 @pytest.fixture(scope="module")
 def example():
-    spec = importlib.util.spec_from_file_location("onnx_predict_example", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["onnx_predict_example"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("onnx_predict_example")
 
 
 def art(seed: int) -> np.ndarray:

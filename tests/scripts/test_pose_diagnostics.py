@@ -3,23 +3,17 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "pose_diagnostics.py"
+from tests.scripts.conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def diagnostics():
-    spec = importlib.util.spec_from_file_location("pose_diagnostics", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["pose_diagnostics"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("pose_diagnostics")
 
 
 def test_affine_floor_shrinks_with_focal_and_vanishes_without_tilt(diagnostics) -> None:
