@@ -13,6 +13,7 @@ from matl.data.canonical import CanonicalSet
 from matl.data.catalog import SyntheticCatalog
 from matl.data.catalog.models import product_model
 from matl.data.catalog.shapes import ProductModel
+from matl.data.datamodule import TripletDataModule
 
 
 def masked_prints(B: int, S: int, rows: tuple[int, int], cols: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,6 +45,15 @@ class PatternSource:
             masks[p, lo:hi, lo:hi] = True
         return CanonicalSet(images, masks, np.repeat(np.arange(6), 2).astype(np.int64),
                             [f"p{i % 2}" for i in range(P)], [f"o{i}" for i in range(6)], ["planar"] * 6)
+
+
+def pattern_datamodule(cache_dir, **options: Any) -> TripletDataModule:
+    """A set-up :class:`TripletDataModule` of :class:`PatternSource` at 32 px: 2 anchors, 16 training triplets in
+    batches of 8, 4 validation and 4 test queries, seed 0; ``options`` its others (``augment``, ``occlude``)."""
+    dm = TripletDataModule(PatternSource(), image_size=32, num_anchors=2, train_triplets=16, val_queries=4,
+                           test_queries=4, batch_size=8, eval_batch_size=4, seed=0, cache_dir=cache_dir, **options)
+    dm.setup()
+    return dm
 
 
 class TinyCatalog:

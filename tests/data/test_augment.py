@@ -6,9 +6,8 @@ import pytest
 import torch
 
 from matl.data.augment import CameraAugment, Photometric, imperfect_masks, jpeg_round_trip
-from matl.data.datamodule import TripletDataModule
 from matl.utils.errors import MatlError
-from tests.data.conftest import PatternSource, masked_prints
+from tests.data.conftest import masked_prints, pattern_datamodule
 
 
 def _square(B: int = 4, S: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,14 +89,8 @@ def test_bad_settings_are_one_line_errors() -> None:
 
 
 def test_datamodule_augments_positives_and_negatives_only(tmp_path) -> None:
-    def make(augment):
-        dm = TripletDataModule(PatternSource(), image_size=32, num_anchors=2, train_triplets=16, val_queries=4,
-                               test_queries=4, batch_size=8, eval_batch_size=4, seed=0, cache_dir=tmp_path,
-                               augment=augment)
-        dm.setup()
-        return dm
-
-    plain, camera = make(None), make(CameraAugment(bank=8, modes={"clutter": 1.0}))
+    plain = pattern_datamodule(tmp_path)
+    camera = pattern_datamodule(tmp_path, augment=CameraAugment(bank=8, modes={"clutter": 1.0}))
     b0 = plain.materialize(next(iter(plain.train_dataloader())))
     b1 = camera.materialize(next(iter(camera.train_dataloader())))
     assert torch.equal(b0["anchors"], b1["anchors"]) and torch.equal(b0["plane"], b1["plane"])

@@ -5,10 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from matl.data.datamodule import TripletDataModule
 from matl.data.occlusion import OccludeQueries
 from matl.utils.errors import MatlError
-from tests.data.conftest import PatternSource, masked_prints
+from tests.data.conftest import masked_prints, pattern_datamodule
 
 
 def _products(B: int = 6, S: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
@@ -64,14 +63,8 @@ def test_bad_settings_are_one_line_errors() -> None:
 
 
 def test_datamodule_occludes_training_positives_and_keeps_the_whole_one(tmp_path) -> None:
-    def make(occlude):
-        dm = TripletDataModule(PatternSource(), image_size=32, num_anchors=2, train_triplets=16, val_queries=4,
-                               test_queries=4, batch_size=8, eval_batch_size=4, seed=0, cache_dir=tmp_path,
-                               occlude=occlude)
-        dm.setup()
-        return dm
-
-    plain, occluded = make(None), make(OccludeQueries(p=1.0, leak_p=0.0))
+    plain = pattern_datamodule(tmp_path)
+    occluded = pattern_datamodule(tmp_path, occlude=OccludeQueries(p=1.0, leak_p=0.0))
     b0 = plain.materialize(next(iter(plain.train_dataloader())))
     b1 = occluded.materialize(next(iter(occluded.train_dataloader())))
     assert "positive_target" not in b0
