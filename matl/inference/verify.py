@@ -36,8 +36,11 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
+from numba import njit
 
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
@@ -79,6 +82,16 @@ def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
     Args:
         anchors: ``(B, 3, S, S)`` float anchor images (zero outside the plane).
     """
+    if erode > 0 and anchors.device.type == "cpu" and len(anchors):  # cv2.erode: the same min-filter, no border erosion
+        plane = (anchors.detach().amax(1) > 0).to(torch.uint8).contiguous().numpy()
+        kernel = np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)
+        eroded = np.stack([cv2.erode(p, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1) for p in plane])
+        return torch.from_numpy(eroded.reshape(plane.shape[0], 1, *plane.shape[1:])) > 0
+    return _anchor_foreground_torch(anchors, erode)
+
+
+def _anchor_foreground_torch(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
+    """:func:`anchor_foreground` in torch (a max-pooling of the negated mask): the GPU's and the reference."""
     mask = (anchors.amax(1, keepdim=True) > 0).float()
     if erode > 0:
         mask = -F.max_pool2d(-mask, 2 * erode + 1, stride=1, padding=erode)
@@ -118,7 +131,23 @@ def _gaussian_kernel(sigma: float) -> torch.Tensor:
 
 def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     """``(B, C, H, W)`` images smoothed by a separable Gaussian of ``sigma`` px, borders reflected (the
-    same as kornia's ``gaussian_blur2d`` with that kernel size, in two small convolutions)."""
+    same as kornia's ``gaussian_blur2d`` with that kernel size, in two small convolutions).
+
+    On the CPU (no gradient) each plane goes through ``cv2.sepFilter2D`` (border ``BORDER_REFLECT_101``: torch's
+    ``reflect``), the same filter as :func:`_gaussian_blur_torch` up to float rounding and several times faster."""
+    if images.device.type != "cpu" or images.requires_grad or images.dtype not in (torch.float32, torch.float64):
+        return _gaussian_blur_torch(images, sigma)
+    kernel = _gaussian_kernel(float(sigma)).numpy().astype(np.float32 if images.dtype == torch.float32 else np.float64)
+    B, C, H, W = images.shape
+    planes = images.detach().contiguous().numpy().reshape(B * C, H, W)
+    out = np.empty_like(planes)
+    for i in range(B * C):
+        cv2.sepFilter2D(planes[i], -1, kernel, kernel, dst=out[i], borderType=cv2.BORDER_REFLECT_101)
+    return torch.from_numpy(out.reshape(B, C, H, W))
+
+
+def _gaussian_blur_torch(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """:func:`gaussian_blur` in torch (a padding and two grouped convolutions): the GPU's and the reference."""
     kernel = _gaussian_kernel(float(sigma)).to(images.device, images.dtype)
     channels, radius = images.shape[1], len(kernel) // 2
     x = F.pad(images, (radius, radius, radius, radius), mode="reflect")
@@ -165,8 +194,13 @@ def patch_distances(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, cell
     Returns:
         ``(B, cells * cells)`` float64, NaN where a patch is not usable.
     """
-    count, var_a, corr, area = _cell_correlations(a, b, weight, cells)
-    usable = (count >= fill * area) & (var_a >= texture * texture * a.shape[1] * count)
+    return _patch_distances(*_cell_correlations(a, b, weight, cells), a.shape[1], fill, texture)
+
+
+def _patch_distances(count: torch.Tensor, var_a: torch.Tensor, corr: torch.Tensor, area: float, channels: int,
+                     fill: float = PATCH_FILL, texture: float = PATCH_TEXTURE) -> torch.Tensor:
+    """:func:`patch_distances` from the cells' :func:`_cell_correlations`."""
+    usable = (count >= fill * area) & (var_a >= texture * texture * channels * count)
     return torch.where(usable, 1.0 - corr, torch.full_like(corr, float("nan"))).flatten(1)
 
 
@@ -174,7 +208,11 @@ def weighted_zncc(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor) -> tor
     """``(B,)`` float64 ZNCC of ``a`` and ``b`` ``(B, C, H, W)`` with pixels weighted by ``weight`` ``(B, 1, H, W)``
     (weighted means per channel, channels pooled: :func:`zncc`'s with a 0/1 weight); 0 where the weights sum to
     fewer than :data:`MIN_PIXELS` or an image is flat."""
-    count, var_a, corr, _ = _cell_correlations(a, b, weight, 1)
+    return _weighted_zncc(*_cell_correlations(a, b, weight, 1)[:3])
+
+
+def _weighted_zncc(count: torch.Tensor, var_a: torch.Tensor, corr: torch.Tensor) -> torch.Tensor:
+    """:func:`weighted_zncc` from the one cell of :func:`_cell_correlations` (``(B, 1, 1)`` each)."""
     ok = (count >= MIN_PIXELS) & (var_a > 1e-12)
     return torch.where(ok, corr, torch.zeros_like(corr)).flatten(1)[:, 0]
 
@@ -184,18 +222,37 @@ def _cell_correlations(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, c
     """Per cell of a ``cells`` x ``cells`` grid over ``(B, C, H, W)`` images: ``(weight sum, a's weighted sum of
     squared deviations (channels pooled), the weighted correlation (0 where b is flat), the cell's area)``, each
     ``(B, cells, cells)`` float64."""
+    count, sums, area = _cell_sums(a, b, weight, cells)
+    return (*_correlations(count, sums), area)
+
+
+def _cell_sums(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, cells: int, torch_only: bool = False
+               ) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Per cell of a ``cells`` x ``cells`` grid over ``(B, C, H, W)`` images: ``(weight sum (B, cells, cells),
+    the weighted sums of a, b, a a, b b, a b (B, 5, C, cells, cells), the cell's area)``, float64 (cells of ``side``
+    px cover the frame; the last row and column may be short, the area is a whole cell's). On the CPU one compiled
+    pass (:func:`_cell_sums_kernel`), else (or ``torch_only``: the reference) pooled in torch."""
     B, C, H, W = a.shape
-    side = -(-max(H, W) // cells)  # cells of side px cover the frame; the last row and column may be short
+    side = -(-max(H, W) // cells)
+    area = float(side * side)
+    if not torch_only and a.device.type == "cpu" and not (a.requires_grad or b.requires_grad or weight.requires_grad):
+        count, sums = _cell_sums_kernel(_numpy(a), _numpy(b), _numpy(weight), cells, side)
+        return torch.from_numpy(count), torch.from_numpy(sums), area
     pad = (0, cells * side - W, 0, cells * side - H)
     m = F.pad(weight.double(), pad)
     a, b = F.pad(a.double(), pad), F.pad(b.double(), pad)
-    area = float(side * side)
 
     def total(x: torch.Tensor) -> torch.Tensor:
         return F.avg_pool2d(x, side) * area                      # (B, C', cells, cells) sums per cell
 
     count = total(m)[:, 0]                                        # (B, cells, cells)
     sums = total(torch.cat([m * a, m * b, m * a * a, m * b * b, m * a * b], 1)).view(B, 5, C, cells, cells)
+    return count, sums, area
+
+
+def _correlations(count: torch.Tensor, sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(count, var_a, corr)`` of :func:`_cell_correlations` from :func:`_cell_sums`'s ``count`` and ``sums``."""
+    C = sums.shape[2]
     n = count.clamp_min(1e-9)[:, None]
     sa, sb, saa, sbb, sab = sums.unbind(1)                        # (B, C, cells, cells)
     var_a = (saa - sa * sa / n).sum(1).clamp_min(0.0)
@@ -204,7 +261,44 @@ def _cell_correlations(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, c
     den = (var_a * var_b).sqrt()
     textured_b = var_b > 1e-10 * C * count  # a std of 1e-5 is rounding, not texture
     corr = torch.where(textured_b & (den > 0), cov / den.clamp_min(1e-300), torch.zeros_like(cov))
-    return count, var_a, corr, area
+    return count, var_a, corr
+
+
+def _numpy(x: torch.Tensor) -> np.ndarray:
+    """A CPU tensor as a C-contiguous float32 or float64 array (a view where it already is one)."""
+    x = x.detach()
+    if x.dtype not in (torch.float32, torch.float64):
+        x = x.float()
+    return x.contiguous().numpy()
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _cell_sums_kernel(a: np.ndarray, b: np.ndarray, weight: np.ndarray, cells: int, side: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_cell_sums` in one pass over the pixels, accumulated in float64 (the products as torch forms them:
+    ``(m a) a``, ``(m b) b``, ``(m a) b``); pixels of weight 0 add nothing and are skipped."""
+    B, C, H, W = a.shape
+    count = np.zeros((B, cells, cells))
+    sums = np.zeros((B, 5, C, cells, cells))
+    for i in range(B):
+        for y in range(H):
+            cy = y // side
+            for x in range(W):
+                m = np.float64(weight[i, 0, y, x])
+                if m == 0.0:
+                    continue
+                cx = x // side
+                count[i, cy, cx] += m
+                for c in range(C):
+                    av = np.float64(a[i, c, y, x])
+                    bv = np.float64(b[i, c, y, x])
+                    ma, mb = m * av, m * bv
+                    sums[i, 0, c, cy, cx] += ma
+                    sums[i, 1, c, cy, cx] += mb
+                    sums[i, 2, c, cy, cx] += ma * av
+                    sums[i, 3, c, cy, cx] += mb * bv
+                    sums[i, 4, c, cy, cx] += ma * bv
+    return count, sums
 
 
 def _trimmed(distances: torch.Tensor, keep: float, least: int) -> torch.Tensor:
@@ -259,8 +353,12 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
     if blur_sigma > 0:  # one call for both
         warped, anchors = gaussian_blur(torch.cat([warped, anchors]), blur_sigma).split(len(anchors))
     if patches:
-        whole = 1.0 - weighted_zncc(warped, anchors, weight)
-        robust = _trimmed(patch_distances(anchors, warped, weight), PATCH_KEEP, MIN_PATCHES) * PATCH_STRICTNESS
+        # one pass over the pixels for both: the whole plane's sums are its patches' (warped as a, anchors as b)
+        count, sums, area = _cell_sums(warped, anchors, weight, PATCH_CELLS)
+        whole = 1.0 - _weighted_zncc(*_correlations(count.sum((1, 2), keepdim=True), sums.sum((3, 4), keepdim=True)))
+        swapped = sums[:, [1, 0, 3, 2, 4]]                        # anchors as a, warped as b
+        cells = _patch_distances(*_correlations(count, swapped), area, anchors.shape[1])
+        robust = _trimmed(cells, PATCH_KEEP, MIN_PATCHES) * PATCH_STRICTNESS
         return torch.where(enough, torch.minimum(whole, robust), torch.ones_like(whole)).cpu()
     return (1.0 - zncc(warped, anchors, mask).masked_fill(~covered, 0.0)).cpu()
 

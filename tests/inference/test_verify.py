@@ -282,3 +282,55 @@ def test_weighted_zncc_is_zncc_with_a_binary_weight() -> None:
     few = torch.zeros(2, 1, 20, 20)
     few[..., 0, :MIN_PIXELS - 1] = 1.0
     assert weighted_zncc(a, b, few).tolist() == [0.0, 0.0]  # fewer than MIN_PIXELS: not compared
+
+
+def test_the_cpu_fast_path_equals_the_torch_reference() -> None:
+    """The CPU path (OpenCV blur and erosion, one compiled pass for the patches' and the whole plane's sums) gives
+    the torch path's answers (the GPU's) up to float rounding."""
+    from matl.inference.verify import (
+        PATCH_KEEP,
+        PATCH_STRICTNESS,
+        _anchor_foreground_torch,
+        _cell_sums,
+        _correlations,
+        _gaussian_blur_torch,
+        _patch_distances,
+        _trimmed,
+        _weighted_zncc,
+    )
+
+    def reference(queries: torch.Tensor, pose: torch.Tensor, anchors: torch.Tensor, visibility: torch.Tensor
+                  ) -> torch.Tensor:  # verification_distance's "patches" in torch alone
+        warped, valid, seen = aligned_queries(queries, pose, True, visibility)
+        plane = _anchor_foreground_torch(anchors, 1)
+        weight = (plane & valid).float() * seen
+        enough = weight.sum((1, 2, 3)) >= 0.3 * plane.sum((1, 2, 3)).clamp_min(1)
+        warped, anchors = _gaussian_blur_torch(torch.cat([warped, anchors]), 1.0).split(len(anchors))
+        whole = 1.0 - _weighted_zncc(*_correlations(*_cell_sums(warped, anchors, weight, 1, torch_only=True)[:2]))
+        count, sums, area = _cell_sums(anchors, warped, weight, PATCH_CELLS, torch_only=True)
+        robust = _trimmed(_patch_distances(*_correlations(count, sums), area, 3), PATCH_KEEP, MIN_PATCHES)
+        return torch.where(enough, torch.minimum(whole, robust * PATCH_STRICTNESS), torch.ones_like(whole))
+
+    g = torch.Generator().manual_seed(7)
+    anchors = torch.cat([textured(seed, 60).float() for seed in range(4)])
+    queries = (0.8 * anchors.roll(1, 0).clone() + 0.2 * anchors).clamp(0, 1)
+    queries[0] = anchors[0] * 1.1 + 0.05
+    queries[1, :, 10:25, 5:30] = 0.0  # empty query pixels
+    visibility = torch.nn.functional.interpolate(torch.rand(4, 1, 4, 4, generator=g), size=(60, 60), mode="bilinear")
+    pose = torch.cat([shift(float(dx), float(dy)) for dx, dy in torch.randn(4, 2, generator=g)])
+    pose[:, 2, :2] = 1e-4 * torch.randn(4, 2, generator=g)
+    args = {"skip_empty": True, "visibility": visibility, "statistic": "patches"}
+    assert torch.allclose(verification_distance(queries, pose, anchors, **args),
+                          reference(queries, pose, anchors, visibility), rtol=0.0, atol=1e-6)
+    images = torch.rand(3, 3, 40, 30, generator=g)
+    for sigma in (0.7, 1.0, 2.0):
+        assert torch.allclose(gaussian_blur(images, sigma), _gaussian_blur_torch(images, sigma), rtol=0.0, atol=1e-6)
+    holes = anchors * (torch.rand(4, 1, 60, 60, generator=g) > 0.05)
+    for erode in (0, 1, 2):
+        assert torch.equal(anchor_foreground(holes, erode), _anchor_foreground_torch(holes, erode))
+    weight = visibility * (torch.rand(4, 1, 60, 60, generator=g) > 0.2)
+    for cells in (1, 3, PATCH_CELLS):
+        fast, slow = _cell_sums(queries, anchors, weight, cells), _cell_sums(queries, anchors, weight, cells, True)
+        assert fast[2] == slow[2]
+        assert torch.allclose(fast[0], slow[0], rtol=1e-12, atol=1e-12)
+        assert torch.allclose(fast[1], slow[1], rtol=1e-12, atol=1e-12)
