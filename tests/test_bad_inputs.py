@@ -575,6 +575,8 @@ CASES = [
         "condition=foggy is invalid: use one or a list of clean, photometric"),
     cli("unseen open_set_statistic=foo (a method's predict option: before any file is written)", "matl.unseen",
         ["ckpt=pretrained", "methods=[matl]", "open_set_statistic=foo"], "matl: open_set_statistic='foo' is invalid"),
+    cli("unseen refine_check=loss (a method's predict option)", "matl.unseen",
+        ["ckpt=pretrained", "methods=[matl_refine]", "refine_check=loss"], "refine_check='loss' is invalid"),
     cli("eval data=foo (unknown dataset)", "matl.eval", ["data=foo"], "unknown option data=foo"),
     # --- image files (queries and gallery images go through the same loader)
     image("image: text file named .png", lambda p: (p.write_text("hello"), p)[1], "not an image"),

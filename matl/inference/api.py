@@ -199,6 +199,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
             does not verify (judged by the ratio test).
         verify_occluded_copies: ``patches``: the share of the calibration's copies with an occluder across them
             (:func:`matl.inference.calibration._occluded_copies`); 0 (default): whole copies.
+        refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
+            unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
+            query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -230,6 +233,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         self.verify_refine = settings.verify_refine
         self.verify_statistic, self.verify_min_visible = settings.verify_statistic, settings.verify_min_visible
         self.verify_occluded_copies = settings.verify_occluded_copies
+        self.refine_check = settings.refine_check
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -316,7 +320,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
             if self._runtime_path is None and self.runtime_fallback is None:
                 self._runtime_path, self.runtime_fallback = runtime_path(recognizer)
             recognizer.onnx = self._runtime_path
-        predictor = RefinedRecognizer(recognizer, self.refiner) if self.refiner is not None else recognizer
+        check = self._pose_check if self.refine_check == "verify" else None
+        predictor = RefinedRecognizer(recognizer, self.refiner, check=check) if self.refiner is not None else recognizer
         self._built = (predictor, gallery)
         return self._built
 
@@ -397,13 +402,14 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         return self._planes[index]
 
     def options(self) -> dict[str, Any]:
-        """What the queries run with (for result files): search, refinement, quantisation, runtime."""
+        """What the queries run with (for result files): search, refinement and its check, quantisation, runtime."""
         refiner = None
         if self.refiner is not None:
             refiner = {k: v for k, v in vars(self.refiner).items() if not k.startswith("_")}
         name = getattr(self.search, "func", self.search)
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
-                "refine": self.refiner is not None, "refiner": refiner, "quantize": self.quantize,
+                "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
+                "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,
                 "runtime": "torch" if self.runtime_fallback else self.runtime,

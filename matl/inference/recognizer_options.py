@@ -24,9 +24,11 @@ from matl.inference.verify import VERIFY_STATISTICS
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
 
-__all__ = ["OPEN_SET_STATISTICS", "RecognizerOptions"]
+__all__ = ["OPEN_SET_STATISTICS", "REFINE_CHECKS", "RecognizerOptions"]
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
+#: second judges of a refined pose (Recognizer's ``refine_check``)
+REFINE_CHECKS = ("none", "verify")
 
 
 def _search_factory(search: str | SearchFactory | None) -> SearchFactory:
@@ -79,6 +81,7 @@ class RecognizerOptions:
     verify_statistic: str = "patches"
     verify_min_visible: float = 0.3
     verify_occluded_copies: float = 0.0
+    refine_check: str = "none"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -118,6 +121,8 @@ class RecognizerOptions:
             raise MatlError(f"verify_occluded_copies={self.verify_occluded_copies!r} is invalid: use a share of the "
                             "calibration's copies in [0, 1] (0: whole copies)")
         self.verify_occluded_copies = float(self.verify_occluded_copies)
+        if self.refine_check not in REFINE_CHECKS:
+            raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)

@@ -67,6 +67,9 @@ __all__ = ["LOSSES", "PhotometricRefiner", "RefineResult", "RefinedRecognizer", 
 
 LOSSES = ("l2", "huber", "cauchy")
 _FOREGROUND = 1e-3  # a pixel brighter than this in any channel is foreground (backgrounds are exactly 0)
+#: a second judge of refined poses (RefinedRecognizer's ``check``): (queries (T, 3, S, S), query_H_anchor (T, 3, 3),
+#: gallery_index (T,), visibility (T, 1, S, S) or None) -> (T,) scores, lower is better
+PoseCheck = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, "torch.Tensor | None"], torch.Tensor]
 
 
 @dataclass
@@ -448,11 +451,15 @@ class RefinedRecognizer:
             ``anchor_templates(anchor images)``: its per-anchor data is computed here, once for the gallery,
             and queries pass anchor indices) or :class:`PhotometricRefiner` (queries pass anchor images).
         templates: that per-anchor data when already computed for this gallery (another recognizer's).
+        check: a second judge of the refined pose (``refine_check=verify``: the verification distance):
+            ``check(queries (T, 3, S, S), query_H_anchor (T, 3, 3), gallery_index (T,), visibility (T, 1, S, S) or
+            None) -> (T,)``, lower is better; a query keeps its unrefined pose where that pose scores lower than the
+            refined one. None: the refiner's own loss alone decides.
     """
 
     def __init__(self, recognizer: Callable[[torch.Tensor], Prediction], refiner: Any,
-                 gallery: Any = None, templates: Any = None) -> None:
-        self.recognizer, self.refiner = recognizer, refiner
+                 gallery: Any = None, templates: Any = None, check: PoseCheck | None = None) -> None:
+        self.recognizer, self.refiner, self.check = recognizer, refiner, check
         self.gallery = gallery if gallery is not None else recognizer.gallery
         if templates is None and hasattr(refiner, "anchor_templates"):
             templates = refiner.anchor_templates(self.gallery.images)  # once per gallery
@@ -462,7 +469,7 @@ class RefinedRecognizer:
         self._pose_later = isinstance(recognizer, TensorRecognizer)
 
     def __getattr__(self, name: str) -> Any:  # search backend, features, ... of the wrapped recognizer
-        if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later"):
+        if name in ("recognizer", "refiner", "gallery", "last", "templates", "_pose_later", "check"):
             raise AttributeError(name)
         return getattr(self.recognizer, name)
 
@@ -511,15 +518,33 @@ class RefinedRecognizer:
         else:
             result = self.refiner(queries.to(device), g.images[safe], start, **extra)
         self.last = result
+        refined = result.query_H_anchor
+        if self.check is not None and len(index):
+            unrefined = [start, *extra["alternatives"].unbind(1)] if "alternatives" in extra else [start]
+            refined = self._checked(queries, refined, unrefined, safe, visibility)
         canon = g.anchor_H_canon64()
         if every:
-            H = result.query_H_anchor
+            H = refined
             pose = compose_query_H_canon(H, canon[safe])
         else:  # a query without an anchor keeps the recognizer's answer
             found = (index >= 0)[:, None, None]
-            H = torch.where(found, result.query_H_anchor, start)
+            H = torch.where(found, refined, start)
             old = pred.query_H_canon  # None when left out above: the unrefined pose, composed here
             old = compose_query_H_canon(start, canon[safe]) if old is None else old.double().to(device)
             pose = torch.where(found, compose_query_H_canon(H, canon[safe]), old)
         device = pred.query_H_anchor.device
         return dataclasses.replace(pred, query_H_anchor=H.to(device), query_H_canon=pose.to(device))
+
+    def _checked(self, queries: torch.Tensor, refined: torch.Tensor, unrefined: list[torch.Tensor],
+                 index: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
+        """Per query, ``refined`` ``(B, 3, 3)`` where :attr:`check` scores it at most as every unrefined pose
+        (``unrefined``: the start, then the alternatives, each ``(B, 3, 3)``), else the unrefined pose that scores
+        lowest (the first of equals): every pose of every query judged in one call."""
+        poses = [refined.to(unrefined[0]), *unrefined]
+        n = len(poses)
+        seen = None if visibility is None else visibility.repeat(n, 1, 1, 1)
+        score = self.check(queries.repeat(n, 1, 1, 1), torch.cat(poses), index.repeat(n), seen).view(n, -1)
+        best = score[1:].argmin(0)  # (B,) the lowest-scoring unrefined pose
+        keep = (score[1 + best, torch.arange(len(index))] < score[0]).to(refined.device)[:, None, None]
+        fallback = torch.stack(unrefined)[best.to(refined.device), torch.arange(len(index), device=refined.device)]
+        return torch.where(keep, fallback, poses[0])

@@ -14,7 +14,7 @@ import torch
 
 from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.verify import CandidatePose, Verification, verify_candidates
+from matl.inference.verify import CandidatePose, Verification, verification_distance, verify_candidates
 from matl.models.prediction import Prediction
 
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
@@ -49,6 +49,16 @@ class Verifying:
                                             statistic=self.verify_statistic, min_visible=self.verify_min_visible))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
+
+    def _pose_check(self, queries: torch.Tensor, query_H_anchor: torch.Tensor, gallery_index: torch.Tensor,
+                    visibility: torch.Tensor | None) -> torch.Tensor:
+        """``refine_check=verify``: the verification distance ``(T,)`` of each pose ``(T, 3, 3)`` of ``(T, 3, S, S)``
+        queries against gallery anchor ``gallery_index`` ``(T,)`` (lower is better), with this recognizer's
+        ``verify_*`` settings."""
+        _, gallery = self._build()
+        return verification_distance(queries, query_H_anchor, gallery.images[gallery_index.to(gallery.images.device)],
+                                     self.verify_blur, skip_empty=True, visibility=visibility,
+                                     statistic=self.verify_statistic, min_visible=self.verify_min_visible)
 
     def _candidate_refiner(self) -> tuple[FastRefiner, Any]:
         """The refiner of ``verify_refine``'s candidates and its per-anchor data, built when a candidate first needs

@@ -17,7 +17,8 @@ from tests.inference.test_api import SIZE, StubModel, exact_model_pose, stub_rec
 
 SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_option", "open_set_statistic",
             "open_set_quantile", "calibration_warps", "verify_top_k", "verify_max", "verify_blur", "verify_refine",
-            "verify_statistic", "verify_min_visible", "gallery_fill", "query_fill", "batch_size", "foreground")
+            "verify_statistic", "verify_min_visible", "refine_check", "gallery_fill", "query_fill", "batch_size",
+            "foreground")
 
 
 def test_the_defaults_are_resolved_once() -> None:
@@ -34,7 +35,7 @@ def test_the_defaults_are_resolved_once() -> None:
 
 def test_a_recognizer_from_options_is_the_recognizer_from_keyword_arguments() -> None:
     kwargs = {"threshold": 0.5, "verify_top_k": 3, "verify_blur": 0.0, "query_fill": 0.6, "foreground": "none",
-              "refine": True, "open_set_statistic": "ratio"}
+              "refine": True, "open_set_statistic": "ratio", "refine_check": "verify"}
     by_keywords = stub_recognizer(**kwargs)
     by_options = Recognizer(StubModel(exact_model_pose()), SIZE, 1, "stub-model",
                             options=RecognizerOptions(**kwargs))
@@ -52,7 +53,7 @@ def test_bad_values_are_the_keyword_arguments_errors() -> None:
     for bad in ({"quantize": "int4"}, {"runtime": "tvm"}, {"threshold": "high"}, {"refine": "yes"},
                 {"search": "annoy"}, {"open_set_statistic": "zncc"}, {"verify_top_k": True}, {"verify_max": 3.0},
                 {"verify_blur": -1.0}, {"verify_refine": 1}, {"verify_statistic": "median"},
-                {"verify_min_visible": 1.5}, {"foreground": "magic"}):
+                {"verify_min_visible": 1.5}, {"refine_check": "loss"}, {"foreground": "magic"}):
         key = next(iter(bad))
         with pytest.raises(MatlError, match=key) as from_options:
             RecognizerOptions(**bad)

@@ -169,6 +169,35 @@ def test_refined_recognizer_refines_against_the_selected_anchor() -> None:
     assert torch.equal(refined.gallery_index, index)
 
 
+def test_refine_check_keeps_the_pose_it_judges_better() -> None:
+    anchors, queries, true, start = scene(seed=6)
+    n = len(anchors)
+    gallery = Gallery(anchors, torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
+                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
+                      [f"p{i}" for i in range(n)])
+    index = torch.arange(n)
+    seen: list[tuple[int, ...]] = []
+
+    def prefer(unrefined_rows: set[int]):  # a judge scoring the unrefined pose lower for these queries only
+        def check(q: torch.Tensor, H: torch.Tensor, i: torch.Tensor, vis: torch.Tensor | None) -> torch.Tensor:
+            seen.append((len(q), len(H), len(i)))
+            score = torch.ones(len(H), dtype=torch.float64)
+            for row in unrefined_rows:
+                score[n + row] = 0.0  # the start's copy of the query
+            return score
+        return check
+
+    plain = RefinedRecognizer(FixedRecognizer(gallery, index, start), PhotometricRefiner())(queries)
+    kept = RefinedRecognizer(FixedRecognizer(gallery, index, start), PhotometricRefiner(), check=prefer({1}))(queries)
+    assert seen == [(2 * n, 2 * n, 2 * n)]  # every query's refined and unrefined pose in one call
+    assert torch.equal(kept.query_H_anchor[1], start[1].to(kept.query_H_anchor))
+    others = [r for r in range(n) if r != 1]
+    assert torch.equal(kept.query_H_anchor[others], plain.query_H_anchor[others])
+    assert float(corner_error_px(kept.query_H_canon[others], true[others], (S, S)).max()) < 1.0
+    tie = RefinedRecognizer(FixedRecognizer(gallery, index, start), PhotometricRefiner(), check=prefer(set()))(queries)
+    assert torch.equal(tie.query_H_anchor, plain.query_H_anchor)  # equal scores: the refined pose
+
+
 # ----------------------------------------------------------------------------------------- search
 def test_exact_search_caches_norms_and_matches_cdist() -> None:
     g = torch.Generator().manual_seed(0)
