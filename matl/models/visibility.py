@@ -20,7 +20,9 @@ Then a small encoder-decoder:
   is the centred product or a neighbour cut by the edge is a question about the whole crop;
 * decoder: bilinear upsampling by 2 with the encoder's map of that size concatenated (skip
   connections) and a 3x3 convolution, back to ``S/2``; a 1x1 convolution to one logit, upsampled
-  bilinearly to ``S``.
+  bilinearly to ``S``; or, with ``full_channels`` > 0 (the shipped network: 8), upsampled to ``S`` first,
+  the input concatenated and one more 3x3 convolution of that width before the 1x1 logit, so the mask's
+  edge is decided at the working size.
 
 Batch norm folds into the convolutions in an exported graph (eval mode), so the ONNX graph is
 convolutions, ReLUs, resizes and concatenations only.
@@ -69,6 +71,7 @@ class VisibilityNet(nn.Module):
         dilations: dilations of the context convolutions at ``S/8`` (each a 3x3 convolution).
         global_context: add the map's mean, through a 1x1 convolution, to the context.
         coordinates: feed the two coordinate channels (x, y in [-1, 1]).
+        full_channels: width of a last 3x3 stage at the full working size (0: none, logits at ``S/2`` upsampled).
     """
 
     def __init__(self, size: int = 64, channels: Sequence[int] = (16, 24, 32), dilations: Sequence[int] = (2, 4),
