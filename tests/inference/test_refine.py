@@ -140,6 +140,14 @@ def test_small_queries_are_compared_with_their_anchor_at_their_resolution() -> N
 
 
 # ------------------------------------------------------------------------------ recognizer wrapper
+def plane_gallery(anchors: torch.Tensor) -> Gallery:
+    """A gallery of ``(n, 3, S, S)`` anchor images, one object and plane each, anchor frames the canonical frames."""
+    n = len(anchors)
+    return Gallery(anchors, torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
+                   torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
+                   [f"p{i}" for i in range(n)])
+
+
 class FixedRecognizer:
     """Returns given indices and poses (a stand-in for any recognizer)."""
 
@@ -157,9 +165,7 @@ class FixedRecognizer:
 def test_refined_recognizer_refines_against_the_selected_anchor() -> None:
     anchors, queries, true, start = scene(seed=6)
     n = len(anchors)
-    gallery = Gallery(anchors.flip(0), torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
-                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
-                      [f"p{i}" for i in range(n)])
+    gallery = plane_gallery(anchors.flip(0))
     index = torch.arange(n).flip(0)  # gallery entry of query i is n - 1 - i
     index[0] = -1                    # an unmatched query (a baseline's -1) keeps its prediction
     refined = RefinedRecognizer(FixedRecognizer(gallery, index, start), PhotometricRefiner())(queries)
@@ -172,9 +178,7 @@ def test_refined_recognizer_refines_against_the_selected_anchor() -> None:
 def test_refine_check_keeps_the_pose_it_judges_better() -> None:
     anchors, queries, true, start = scene(seed=6)
     n = len(anchors)
-    gallery = Gallery(anchors, torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
-                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
-                      [f"p{i}" for i in range(n)])
+    gallery = plane_gallery(anchors)
     index = torch.arange(n)
     seen: list[tuple[int, ...]] = []
 

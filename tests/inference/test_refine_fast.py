@@ -15,7 +15,7 @@ from matl.inference.fast_refine import FastRefiner
 from matl.inference.refine import RefinedRecognizer
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
-from tests.inference.test_refine import FixedRecognizer
+from tests.inference.test_refine import FixedRecognizer, plane_gallery
 from tests.speed_helpers import textured_planes
 
 S, B = 64, 6
@@ -156,9 +156,7 @@ class AlignedRecognizer(FixedRecognizer):
 def test_refined_recognizer_precomputes_the_gallery_once_and_start_stn_skips_the_alignment_stage() -> None:
     anchors, queries, true, start = scene(seed=6)
     n = len(anchors)
-    gallery = Gallery(anchors.flip(0), torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
-                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
-                      [f"p{i}" for i in range(n)])
+    gallery = plane_gallery(anchors.flip(0))
     index = torch.arange(n).flip(0)
     index[0] = -1
     recognizer = AlignedRecognizer(gallery, index, start)
@@ -338,9 +336,7 @@ class StubAlign:
 def test_compare_align_keeps_the_stage_pose_when_the_refinement_does_worse() -> None:
     anchors, queries, true, _ = scene(seed=6)
     n = len(anchors)
-    gallery = Gallery(anchors, torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.long),
-                      torch.eye(3, dtype=torch.float64).repeat(n, 1, 1), [f"o{i}" for i in range(n)],
-                      [f"p{i}" for i in range(n)])
+    gallery = plane_gallery(anchors)
     far = true.clone()
     far[:, 1, 2] += 15.0  # s()'s pose: beyond the refinement's basin
     recognizer = FixedRecognizer(gallery, torch.arange(n), far)
