@@ -90,7 +90,7 @@ class GrabCutForeground:
     """
 
     inset_px: int = 2
-    iterations: int = 5
+    iterations: int = 2
     open_px: int = 1
     passes: int = 0
     alpha_band_px: int = 4
