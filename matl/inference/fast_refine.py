@@ -228,11 +228,16 @@ class FastRefiner:
         """``image`` ``(H, W)`` under a Gaussian of std ``blur`` px (zeros outside), or itself (``blur=0``)."""
         return blurred(image, self.blur)
 
-    def _anchor(self, gray: np.ndarray, fg: np.ndarray, kinds: Sequence[str]) -> list[list[AnchorLevel]]:
-        """One anchor's levels for each region kind in ``kinds`` (``frame`` / ``foreground``), finest first
-        (:func:`~matl.inference.fast_refine_anchors.anchor_levels` with this refiner's settings)."""
-        return anchor_levels(gray, fg, kinds, self.levels, self.min_size, self.erode, self.visibility_band,
-                             self.blur)
+    def _anchor(self, gray: np.ndarray, fg: np.ndarray
+                ) -> tuple[list[AnchorLevel], list[AnchorLevel] | None, np.ndarray | None]:
+        """One anchor's ``(levels, region=auto's foreground levels, its outside mask)`` from its luminance and
+        foreground ``(H, W)`` (:func:`~matl.inference.fast_refine_anchors.anchor_levels` with this refiner's
+        settings; the last two None unless ``region=auto``)."""
+        levels = anchor_levels(gray, fg, self._kinds(), self.levels, self.min_size, self.erode,
+                               self.visibility_band, self.blur)
+        if self.region != "auto":
+            return levels[0], None, None
+        return levels[0], levels[1], outside_mask(fg, self.auto_band)
 
     @torch.no_grad()
     def anchor_templates(self, anchors: torch.Tensor) -> AnchorTemplates:
@@ -244,14 +249,11 @@ class FastRefiner:
         gray = [image for image, _ in luminance(anchors)]
         fg = (anchors.detach().float().cpu() > FOREGROUND).any(dim=1).numpy().astype(np.float32)
         # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
-        kinds = self._kinds()
-        per_anchor = [self._anchor(gray[i], fg[i], kinds) for i in range(len(gray))]
-        templates = [levels[0] for levels in per_anchor]
-        foreground = outside = None
-        if self.region == "auto":
-            foreground = [levels[1] for levels in per_anchor]
-            outside = [outside_mask(f, self.auto_band) for f in fg]
-        return AnchorTemplates(templates, (int(anchors.shape[-2]), int(anchors.shape[-1])),
+        per_anchor = [self._anchor(gray[i], fg[i]) for i in range(len(gray))]
+        auto = self.region == "auto"
+        foreground = [a[1] for a in per_anchor] if auto else None
+        outside = [a[2] for a in per_anchor] if auto else None
+        return AnchorTemplates([a[0] for a in per_anchor], (int(anchors.shape[-2]), int(anchors.shape[-1])),
                                time.perf_counter() - start, foreground, outside, anchors.detach())
 
     def _kinds(self) -> tuple[str, ...]:
@@ -278,13 +280,7 @@ class FastRefiner:
             return found
         image = at_resolution(templates.source[k:k + 1].detach().float().cpu(), side)
         gray = luminance(image)[0][0]
-        fg = (image[0] > FOREGROUND).any(dim=0).numpy().astype(np.float32)
-        kinds = self._kinds()
-        levels = self._anchor(gray, fg, kinds)
-        outside = None
-        if self.region == "auto":
-            outside = outside_mask(fg, self.auto_band)
-        found = (levels[0], levels[1] if len(kinds) > 1 else None, outside)
+        found = self._anchor(gray, (image[0] > FOREGROUND).any(dim=0).numpy().astype(np.float32))
         if self.cache > 0:
             templates.resampled[key] = found
             while len(templates.resampled) > self.cache:
