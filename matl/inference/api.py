@@ -385,6 +385,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         matches = [*first[0], *second[0]]
         return ([matches[int(i)] for i in order], _rows(_concat(first[1], second[1]), order),
                 _rows(_concat(first[2], second[2]), order))
+
     def predict_tensor(self, queries: torch.Tensor) -> Prediction:
         """The model-frame prediction for ``(B, 3, S, S)`` images already at model size (no pose in files)."""
         with self._lock:
@@ -502,6 +503,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
                                        alternatives[i],
                                        float("nan") if verification is None else float(verification.distance[i])))
         return matches, pred, queries
+
     def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,
                threshold: float | None, alternatives: list[Match], verification: float = float("nan")) -> Match:
         p = self._planes[plane]

@@ -123,6 +123,7 @@ class OpenSetCalibration:
         if self.open_set_statistic in ("verify", "verify_or_ratio") and verified is not None:
             return torch.where(verified.cpu(), torch.zeros_like(ratio), ratio)
         return ratio
+
     def calibration(self) -> dict[str, torch.Tensor]:
         """Genuine and impostor samples of the open-set statistic (see the module docstring)."""
         with self._lock:

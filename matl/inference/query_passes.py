@@ -79,6 +79,7 @@ class QueryPasses:
         rows, source = list(take), list(take.values())
         return (_with_rows(pred, rows, alt_pred, source), _with_rows(queries, rows, alt_queries, source),
                 _with_rows(verification, rows, alt_verification, source))
+
     def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
                            found: list[np.ndarray | None], visibility: torch.Tensor | None = None,
                            upscale: torch.Tensor | None = None) -> tuple[Prediction, torch.Tensor]:

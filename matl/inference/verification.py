@@ -95,6 +95,7 @@ class Verifying:
             return refined, refined if refined_answers else network
 
         return pose
+
     def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
         """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""
         device = pred.gallery_index.device
