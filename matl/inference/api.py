@@ -87,6 +87,7 @@ from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import ForegroundStep, mask_query
 from matl.inference.gallery import build_gallery
 from matl.inference.images import FLOAT_SLACK, LUMA, MIN_GALLERY_SIDE, _as_rgb, _concat, _grey_u8, _is_grey, _rows
+from matl.inference.keypoint_pose import KeypointPose, KeypointPoses
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.query_passes import QueryPasses
 from matl.inference.recognizer_options import OPEN_SET_STATISTICS, RecognizerOptions
@@ -155,7 +156,7 @@ class Match:
 
 
 
-class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
+class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, KeypointPoses):
     """Recognition and pose of camera crops against an enrolled gallery; see the module docstring.
 
     Args:
@@ -234,6 +235,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         self.verify_statistic, self.verify_min_visible = settings.verify_statistic, settings.verify_min_visible
         self.verify_occluded_copies = settings.verify_occluded_copies
         self.refine_check = settings.refine_check
+        self.keypoint_pose: KeypointPose = settings.keypoint_pose
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -410,6 +412,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
         name = getattr(self.search, "func", self.search)
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
+                "keypoint_pose": self.keypoint_pose.options(),
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,
@@ -480,6 +483,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses):
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries,
                                                                        verification)
+        if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
+            pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None

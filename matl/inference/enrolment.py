@@ -37,6 +37,7 @@ class _Plane:
     path: str | None
     features: torch.Tensor          # (N, D) float32
     calibration: torch.Tensor | None = None  # (W, D) features of warped copies (open-set calibration)
+    keypoints: Any = None  # its keypoints for keypoint_pose (ImageFeatures), computed at their first need
 
 
 class Enrolment:

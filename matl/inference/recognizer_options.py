@@ -18,6 +18,7 @@ import torch
 
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import ForegroundStep, foreground_option
+from matl.inference.keypoint_pose import KeypointPose
 from matl.inference.refine import PhotometricRefiner
 from matl.inference.runtime import RUNTIMES
 from matl.inference.verify import VERIFY_STATISTICS
@@ -82,6 +83,7 @@ class RecognizerOptions:
     verify_min_visible: float = 0.3
     verify_occluded_copies: float = 0.0
     refine_check: str = "none"
+    keypoint_pose: str | KeypointPose = "none"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -123,6 +125,11 @@ class RecognizerOptions:
         self.verify_occluded_copies = float(self.verify_occluded_copies)
         if self.refine_check not in REFINE_CHECKS:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
+        if isinstance(self.keypoint_pose, str):
+            self.keypoint_pose = KeypointPose(mode=self.keypoint_pose)
+        elif not isinstance(self.keypoint_pose, KeypointPose):
+            raise MatlError(f"keypoint_pose={self.keypoint_pose!r} is invalid: use none, unverified, always or a "
+                            "KeypointPose")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)

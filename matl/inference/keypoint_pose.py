@@ -1,0 +1,273 @@
+"""A pose from keypoints for answers that do not verify: the crop matched against its answered product's planes.
+
+Under an occluder the networks' pose of a partly hidden product is often far off (s() regresses one homography from
+the whole crop, the hidden part included), and the photometric refinement cannot reach the truth from there. Local
+features do not need the whole product: SIFT keypoints of the crop are matched (Lowe's ratio test) with those of
+every enrolled plane of the answered product, and RANSAC finds the homography of the plane with most inliers
+(:mod:`matl.baselines.keypoints`, the SIFT baseline's matching). Both images are brought to one working size first
+(``size`` px on the longer side), where SIFT finds enough keypoints on a small crop.
+
+The keypoint pose (refined from there when the recognizer refines) replaces the answer's pose only where its
+verification distance is lower (:func:`~matl.inference.verify.verification_distance`, over the query's visibility):
+it can change which plane of the product is answered, never the product, and it can make an answer verify (so a
+partly hidden known product is answered known) but never make the kept pose worse by that criterion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from matl.baselines.keypoints import (
+    RANSAC_METHODS,
+    GalleryDescriptors,
+    ImageFeatures,
+    ratio_test_matches,
+    vote_by_ransac,
+)
+from matl.baselines.sift import SiftRansacMatcher
+from matl.geometry import compose_query_H_canon
+from matl.inference.images import _query_visibility
+from matl.inference.verify import Verification, verification_distance
+from matl.models.prediction import Prediction
+from matl.utils.errors import MatlError
+from matl.utils.timing import stage
+
+__all__ = ["KEYPOINT_POSE_MODES", "KeypointPose", "KeypointPoses"]
+
+#: when the keypoint pose is tried: never, for answers that do not verify, for every answer
+KEYPOINT_POSE_MODES = ("none", "unverified", "always")
+
+
+def _scaled(rgb: np.ndarray, size: int) -> tuple[np.ndarray, float]:
+    """``rgb`` ``(H, W, 3)`` float in [0, 1] resized so its longer side is ``size`` px, and the factor (new px per
+    old px)."""
+    factor = size / max(rgb.shape[:2])
+    if abs(factor - 1.0) < 1e-9:
+        return rgb, 1.0
+    shape = (max(1, round(rgb.shape[1] * factor)), max(1, round(rgb.shape[0] * factor)))
+    interpolation = cv2.INTER_LINEAR if factor > 1 else cv2.INTER_AREA
+    return cv2.resize(np.ascontiguousarray(rgb, dtype=np.float32), shape, interpolation=interpolation), factor
+
+
+@dataclass
+class KeypointPose:
+    """The keypoint pose's settings (Recognizer's ``keypoint_pose*`` options).
+
+    Args:
+        mode: ``none``, ``unverified`` (answers whose pose does not verify) or ``always``.
+        size: the working size, px on the longer side, of the crop and of the planes' canonical images.
+        min_inliers: fewest RANSAC inliers of a keypoint pose.
+        ratio: Lowe's ratio test.
+        reproj_threshold: RANSAC's inlier threshold in model pixels (the query's file pixels scaled to the model's
+            size).
+        method: a ``cv2.findHomography`` method of :data:`~matl.baselines.keypoints.RANSAC_METHODS`.
+        contrast_threshold: SIFT's DoG contrast threshold (OpenCV's default; the paper's baseline takes 0.004, ten
+            times the keypoints and the time).
+        max_features: the strongest keypoints kept per image.
+    """
+
+    mode: str = "none"
+    size: int = 250
+    min_inliers: int = 8
+    ratio: float = 0.85
+    reproj_threshold: float = 3.0
+    method: str = "usac_magsac"
+    contrast_threshold: float = 0.04
+    max_features: int = 500
+
+    def __post_init__(self) -> None:
+        if self.mode not in KEYPOINT_POSE_MODES:
+            raise MatlError(f"keypoint_pose={self.mode!r} is invalid: use {', '.join(KEYPOINT_POSE_MODES)}")
+        if isinstance(self.size, bool) or not isinstance(self.size, int) or not 32 <= self.size <= 2048:
+            raise MatlError(f"keypoint_size={self.size!r} is invalid: use an integer number of px in [32, 2048]")
+        if isinstance(self.min_inliers, bool) or not isinstance(self.min_inliers, int) or self.min_inliers < 4:
+            raise MatlError(f"keypoint_min_inliers={self.min_inliers!r} is invalid: use an integer >= 4 (a "
+                            "homography needs 4)")
+        if isinstance(self.ratio, bool) or not isinstance(self.ratio, (int, float)) or not 0.0 < self.ratio <= 1.0:
+            raise MatlError(f"keypoint_ratio={self.ratio!r} is invalid: use Lowe's ratio in (0, 1] (e.g. 0.85)")
+        threshold = self.reproj_threshold
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
+            raise MatlError(f"keypoint_reproj_threshold={threshold!r} is invalid: use a distance in model px > 0")
+        if self.method not in RANSAC_METHODS:
+            raise MatlError(f"keypoint_method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
+        self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
+        self._sift: SiftRansacMatcher | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.mode != "none"
+
+    def _extract(self, rgb: np.ndarray) -> ImageFeatures:
+        """SIFT features of ``rgb`` ``(H, W, 3)`` float in [0, 1] at the working size, keypoints in ``rgb``'s own
+        pixels (pixel centres at integers)."""
+        if self._sift is None:
+            self._sift = SiftRansacMatcher(contrast_threshold=self.contrast_threshold, edge_threshold=10.0,
+                                           ratio=self.ratio, max_features=self.max_features)
+        scaled, factor = _scaled(rgb, self.size)
+        features = self._sift.extract(torch.from_numpy(np.ascontiguousarray(scaled)).permute(2, 0, 1)[None])[0]
+        return ImageFeatures((features.keypoints + 0.5) / factor - 0.5, features.descriptors)
+
+    def plane_features(self, canon_u8: torch.Tensor) -> ImageFeatures:
+        """The features of a plane's canonical image ``(3, S, S)`` uint8, keypoints in model pixels."""
+        return self._extract(canon_u8.permute(1, 2, 0).numpy().astype(np.float32) / 255.0)
+
+    def query_features(self, rgb: np.ndarray) -> ImageFeatures:
+        """The features of a crop ``(H, W, 3)`` float in [0, 1], keypoints in its pixels."""
+        return self._extract(rgb)
+
+    def match(self, query: ImageFeatures, planes: list[ImageFeatures], model_px: float
+              ) -> tuple[int, np.ndarray, int]:
+        """The plane of ``planes`` with most RANSAC inliers against ``query`` (``model_px``: the query's file px per
+        model px, which scales the inlier threshold): ``(index, file_H_canon (3, 3) float64, inliers)``, or
+        ``(-1, identity, 0)`` when none reaches ``min_inliers``."""
+        if len(query) < 4 or not any(len(p) >= 4 for p in planes):
+            return -1, np.eye(3), 0
+        matches = ratio_test_matches(query.descriptors, GalleryDescriptors(planes), self.ratio)
+        return vote_by_ransac(query.keypoints, [p.keypoints for p in planes], matches,
+                              reproj_threshold=self.reproj_threshold * model_px, min_inliers=self.min_inliers,
+                              method=RANSAC_METHODS[self.method])
+
+    def options(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def _smallest_rotation(query_H_canon: torch.Tensor, anchor_H_canon: torch.Tensor) -> tuple[int, torch.Tensor]:
+    """Of a plane's ``N`` anchors ``(N, 3, 3)``, the one whose ``query_H_anchor`` turns least (the anchor the STN
+    would pick for this pose) and that pose ``(3, 3)`` float64."""
+    poses = query_H_canon.double()[None] @ torch.linalg.inv(anchor_H_canon.double())
+    poses = poses / poses[:, 2:, 2:]
+    angles = torch.atan2(poses[:, 1, 0] - poses[:, 0, 1], poses[:, 0, 0] + poses[:, 1, 1]).abs()
+    k = int(torch.argmin(angles))
+    return k, poses[k]
+
+
+class KeypointPoses:
+    """The keypoint side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its planes, gallery,
+    refiner, verification options and ``keypoint_pose`` settings."""
+
+    def _plane_keypoints(self, plane: int) -> ImageFeatures:
+        """Enrolled plane ``plane``'s keypoints, computed at its first need and kept with the plane."""
+        p = self._planes[plane]
+        if p.keypoints is None:
+            p.keypoints = self.keypoint_pose.plane_features(p.canon_u8)
+        return p.keypoints
+
+    def _keypoint_poses(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                        query_H_file: torch.Tensor, verification: Verification) -> tuple[Prediction, Verification]:
+        """``pred`` and ``verification`` with the keypoint pose of each answer it applies to (``keypoint_pose``:
+        those that do not verify, or all) where its verification distance is lower than the answer's."""
+        settings: KeypointPose = self.keypoint_pose
+        rows = [i for i in range(len(prepared)) if settings.mode == "always" or not bool(verification.verified[i])]
+        if not rows:
+            return pred, verification
+        with stage(self.stage_timer, "keypoints"):
+            return self._keypoint_rows(prepared, pred, query_H_file, verification, rows)
+
+    def _keypoint_rows(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                       query_H_file: torch.Tensor, verification: Verification, rows: list[int]
+                       ) -> tuple[Prediction, Verification]:
+        settings: KeypointPose = self.keypoint_pose
+        _, gallery = self._build()
+        N = self.num_anchors
+        objects = {name: o for o, name in enumerate(self.objects)}
+        by_object: dict[int, list[int]] = {}
+        for p, plane in enumerate(self._planes):
+            by_object.setdefault(objects[plane.object], []).append(p)
+        found: list[tuple[int, int, torch.Tensor, float]] = []  # (row, gallery index, query_H_anchor, model px)
+        for i in rows:
+            masked, rgb, alpha = prepared[i]
+            image = rgb if alpha is not None else masked  # a foreground step's crop whole; a given alpha applied
+            candidates = by_object[int(pred.object_index[i])]
+            model_H_file = query_H_file[i].double()
+            model_px = float(torch.sqrt(torch.det(model_H_file[:2, :2]).abs()))  # model px per file px
+            if not math.isfinite(model_px) or model_px <= 0:
+                continue
+            index, file_H_canon, _ = settings.match(settings.query_features(image),
+                                                          [self._plane_keypoints(p) for p in candidates],
+                                                          1.0 / model_px)
+            if index < 0:
+                continue
+            plane = candidates[index]
+            query_H_canon = model_H_file @ torch.from_numpy(file_H_canon)
+            k, query_H_anchor = _smallest_rotation(query_H_canon, gallery.anchor_H_canon64()[plane * N:(plane + 1) * N])
+            found.append((i, plane * N + k, query_H_anchor, model_px))
+        if not found:
+            return pred, verification
+        return self._keep_better(prepared, pred, verification, found)
+
+    def _keep_better(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                     verification: Verification, found: list[tuple[int, int, torch.Tensor, float]]
+                     ) -> tuple[Prediction, Verification]:
+        """The keypoint poses ``found`` (refined when the recognizer refines) where their verification distance is
+        lower than the answer's."""
+        from matl.data.image_files import fit_to_model
+
+        _, gallery = self._build()
+        rows = [f[0] for f in found]
+        index = torch.tensor([f[1] for f in found])
+        start = torch.stack([f[2] for f in found])
+        sub = [prepared[i] for i in rows]
+        queries = torch.stack([fit_to_model(masked, self.image_size, self.query_fill)[0] for masked, _, _ in sub])
+        queries = queries.to(self.device)
+        visibility = _query_visibility(sub, self.image_size, self.query_fill, self.device)
+        anchors = gallery.images[index.to(gallery.images.device)]
+
+        def verify(poses: torch.Tensor) -> torch.Tensor:
+            return verification_distance(queries, poses, anchors, self.verify_blur, skip_empty=True,
+                                         visibility=visibility, statistic=self.verify_statistic,
+                                         min_visible=self.verify_min_visible)
+
+        query_H_anchor, distance = start, verify(start)
+        if self.refiner is not None:  # refined from there, kept where it verifies better than the keypoint pose
+            refiner, templates = self._candidate_refiner()
+            upscale = torch.tensor([f[3] for f in found], dtype=torch.float64)
+            refined = refiner(queries, index, start, templates, visibility=visibility,
+                              upscale=upscale).query_H_anchor.double()
+            refined_distance = verify(refined)
+            closer = (refined_distance < distance)[:, None, None]
+            query_H_anchor = torch.where(closer, refined, start)
+            distance = torch.minimum(refined_distance, distance)
+        better = [j for j, i in enumerate(rows) if float(distance[j]) < float(verification.distance[i])]
+        if not better:
+            return pred, verification
+        take = [rows[j] for j in better]
+        g = index[better]
+        device = pred.gallery_index.device
+        new_H = query_H_anchor[better].to(device)
+        features = pred.features
+        recognizer = self._gallery_recognizer()
+        feature_distance = verification.distance.new_full((len(better),), float("nan"))
+        if features is not None and getattr(recognizer, "gallery_features", None) is not None:
+            feature_distance = (features[take].float() - recognizer.gallery_features[g.to(features.device)].float()
+                                ).norm(dim=1).to(feature_distance)
+        pred = dataclasses.replace(
+            pred, gallery_index=_set(pred.gallery_index, take, g), object_index=_set(pred.object_index, take,
+                                                                                      gallery.object_index[g]),
+            plane_index=_set(pred.plane_index, take, gallery.plane_index[g]),
+            anchor_index=_set(pred.anchor_index, take, gallery.anchor_index[g]),
+            distance=_set(pred.distance, take, feature_distance),
+            query_H_anchor=_set(pred.query_H_anchor, take, new_H),
+            query_H_canon=_set(pred.query_H_canon, take, compose_query_H_canon(new_H.double(),
+                                                                               gallery.anchor_H_canon64()[g])))
+        kept = distance[better].to(verification.distance)
+        verification = dataclasses.replace(
+            verification, gallery_index=_set(verification.gallery_index, take, g),
+            query_H_anchor=_set(verification.query_H_anchor, take, new_H),
+            feature_distance=_set(verification.feature_distance, take, feature_distance),
+            distance=_set(verification.distance, take, kept),
+            verified=_set(verification.verified, take, kept <= self.verify_max))
+        return pred, verification
+
+
+def _set(values: torch.Tensor, rows: list[int], new: torch.Tensor) -> torch.Tensor:
+    """A copy of ``values`` with rows ``rows`` set to ``new`` (in ``values``' dtype and device)."""
+    out = values.clone()
+    out[rows] = new.to(out.device, out.dtype)
+    return out
