@@ -86,17 +86,17 @@ class KeypointPose:
         if self.mode not in KEYPOINT_POSE_MODES:
             raise MatlError(f"keypoint_pose={self.mode!r} is invalid: use {', '.join(KEYPOINT_POSE_MODES)}")
         if isinstance(self.size, bool) or not isinstance(self.size, int) or not 32 <= self.size <= 2048:
-            raise MatlError(f"keypoint_size={self.size!r} is invalid: use an integer number of px in [32, 2048]")
+            raise MatlError(f"KeypointPose size={self.size!r} is invalid: use an integer number of px in [32, 2048]")
         if isinstance(self.min_inliers, bool) or not isinstance(self.min_inliers, int) or self.min_inliers < 4:
-            raise MatlError(f"keypoint_min_inliers={self.min_inliers!r} is invalid: use an integer >= 4 (a "
+            raise MatlError(f"KeypointPose min_inliers={self.min_inliers!r} is invalid: use an integer >= 4 (a "
                             "homography needs 4)")
         if isinstance(self.ratio, bool) or not isinstance(self.ratio, (int, float)) or not 0.0 < self.ratio <= 1.0:
-            raise MatlError(f"keypoint_ratio={self.ratio!r} is invalid: use Lowe's ratio in (0, 1] (e.g. 0.85)")
+            raise MatlError(f"KeypointPose ratio={self.ratio!r} is invalid: use Lowe's ratio in (0, 1] (e.g. 0.85)")
         threshold = self.reproj_threshold
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
-            raise MatlError(f"keypoint_reproj_threshold={threshold!r} is invalid: use a distance in model px > 0")
+            raise MatlError(f"KeypointPose reproj_threshold={threshold!r} is invalid: use a distance in model px > 0")
         if self.method not in RANSAC_METHODS:
-            raise MatlError(f"keypoint_method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
+            raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
         self._sift: SiftRansacMatcher | None = None
 

@@ -17,7 +17,8 @@ from tests.inference.test_api import SIZE, StubModel, exact_model_pose, stub_rec
 
 SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_option", "open_set_statistic",
             "open_set_quantile", "calibration_warps", "verify_top_k", "verify_max", "verify_blur", "verify_refine",
-            "verify_statistic", "verify_min_visible", "refine_check", "gallery_fill", "query_fill", "batch_size",
+            "verify_statistic", "verify_min_visible", "refine_check", "keypoint_pose", "gallery_fill", "query_fill",
+            "batch_size",
             "foreground")
 
 
@@ -53,7 +54,8 @@ def test_bad_values_are_the_keyword_arguments_errors() -> None:
     for bad in ({"quantize": "int4"}, {"runtime": "tvm"}, {"threshold": "high"}, {"refine": "yes"},
                 {"search": "annoy"}, {"open_set_statistic": "zncc"}, {"verify_top_k": True}, {"verify_max": 3.0},
                 {"verify_blur": -1.0}, {"verify_refine": 1}, {"verify_statistic": "median"},
-                {"verify_min_visible": 1.5}, {"refine_check": "loss"}, {"foreground": "magic"}):
+                {"verify_min_visible": 1.5}, {"refine_check": "loss"}, {"foreground": "magic"},
+                {"keypoint_pose": "sometimes"}, {"keypoint_pose": 3}):
         key = next(iter(bad))
         with pytest.raises(MatlError, match=key) as from_options:
             RecognizerOptions(**bad)
