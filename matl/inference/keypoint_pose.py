@@ -68,6 +68,10 @@ class KeypointPose:
         reproj_threshold: RANSAC's inlier threshold in model pixels (the query's file pixels scaled to the model's
             size).
         method: a ``cv2.findHomography`` method of :data:`~matl.baselines.keypoints.RANSAC_METHODS`.
+        products: the nearest products tried in turn while the answer does not verify: the answered one, then the
+            next nearest (by the embedding), whose keypoint pose becomes the answer only where it verifies; such an
+            answer is not counted as verified by the open set (the crop may show an enrolled product lying across
+            the one it was cut for: its keypoints match and verify too), which judges it by its statistic.
         contrast_threshold: SIFT's DoG contrast threshold (OpenCV's default; the paper's baseline takes 0.004, ten
             times the keypoints and the time).
         max_features: the strongest keypoints kept per image.
@@ -79,6 +83,7 @@ class KeypointPose:
     ratio: float = 0.85
     reproj_threshold: float = 3.0
     method: str = "usac_magsac"
+    products: int = 5
     contrast_threshold: float = 0.04
     max_features: int = 500
 
@@ -95,6 +100,9 @@ class KeypointPose:
         threshold = self.reproj_threshold
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
             raise MatlError(f"KeypointPose reproj_threshold={threshold!r} is invalid: use a distance in model px > 0")
+        if isinstance(self.products, bool) or not isinstance(self.products, int) or self.products < 1:
+            raise MatlError(f"KeypointPose products={self.products!r} is invalid: use an integer >= 1 (1: the "
+                            "answered product alone)")
         if self.method not in RANSAC_METHODS:
             raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
@@ -174,39 +182,54 @@ class KeypointPoses:
                        query_H_file: torch.Tensor, verification: Verification, rows: list[int]
                        ) -> tuple[Prediction, Verification]:
         settings: KeypointPose = self.keypoint_pose
-        _, gallery = self._build()
-        N = self.num_anchors
         objects = {name: o for o, name in enumerate(self.objects)}
         by_object: dict[int, list[int]] = {}
         for p, plane in enumerate(self._planes):
             by_object.setdefault(objects[plane.object], []).append(p)
-        found: list[tuple[int, int, torch.Tensor, float]] = []  # (row, gallery index, query_H_anchor, model px)
-        for i in rows:
-            masked, rgb, alpha = prepared[i]
-            image = rgb if alpha is not None else masked  # a foreground step's crop whole; a given alpha applied
-            candidates = by_object[int(pred.object_index[i])]
-            model_H_file = query_H_file[i].double()
-            model_px = float(torch.sqrt(torch.det(model_H_file[:2, :2]).abs()))  # model px per file px
-            if not math.isfinite(model_px) or model_px <= 0:
-                continue
-            index, file_H_canon, _ = settings.match(settings.query_features(image),
-                                                          [self._plane_keypoints(p) for p in candidates],
-                                                          1.0 / model_px)
-            if index < 0:
-                continue
-            plane = candidates[index]
-            query_H_canon = model_H_file @ torch.from_numpy(file_H_canon)
-            k, query_H_anchor = _smallest_rotation(query_H_canon, gallery.anchor_H_canon64()[plane * N:(plane + 1) * N])
-            found.append((i, plane * N + k, query_H_anchor, model_px))
-        if not found:
-            return pred, verification
-        return self._keep_better(prepared, pred, verification, found)
+        ranked = {i: [int(pred.object_index[i])] for i in rows}  # the answered product, then the next nearest
+        if settings.products > 1 and pred.features is not None and len(objects) > 1:
+            distances = self._object_distances(pred.features[rows])[0]
+            for j, i in enumerate(rows):
+                order = [o for o in torch.argsort(distances[j]).tolist() if o != ranked[i][0]]
+                ranked[i] += order[:settings.products - 1]
+        features: dict[int, ImageFeatures] = {}
+        for rank in range(settings.products):
+            todo = [i for i in rows if rank < len(ranked[i]) and (rank == 0 or not bool(verification.verified[i]))]
+            found = [c for i in todo if (c := self._keypoint_candidate(prepared[i], query_H_file[i], i,
+                                                                      by_object[ranked[i][rank]], features))]
+            if found:
+                pred, verification = self._keep_better(prepared, pred, verification, found, rank > 0)
+        return pred, verification
+
+    def _keypoint_candidate(self, prepared: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+                            model_H_file: torch.Tensor, row: int, planes: list[int],
+                            features: dict[int, ImageFeatures]) -> tuple[int, int, torch.Tensor, float] | None:
+        """Query ``row``'s keypoint pose against the enrolled planes ``planes`` (one product's): ``(row, gallery
+        index, model-frame query_H_anchor (3, 3) float64, model px per file px)`` of the plane with most inliers,
+        or None (``features``: each row's query features, computed at the first need)."""
+        settings: KeypointPose = self.keypoint_pose
+        masked, rgb, alpha = prepared
+        model_H_file = model_H_file.double()
+        model_px = float(torch.sqrt(torch.det(model_H_file[:2, :2]).abs()))  # model px per file px
+        if not math.isfinite(model_px) or model_px <= 0:
+            return None
+        if row not in features:  # a foreground step's crop whole; a given alpha applied
+            features[row] = settings.query_features(rgb if alpha is not None else masked)
+        index, file_H_canon, _ = settings.match(features[row], [self._plane_keypoints(p) for p in planes],
+                                                1.0 / model_px)
+        if index < 0:
+            return None
+        plane, N = planes[index], self.num_anchors
+        query_H_canon = model_H_file @ torch.from_numpy(file_H_canon)
+        anchor_H_canon = self._build()[1].anchor_H_canon64()[plane * N:(plane + 1) * N]
+        k, query_H_anchor = _smallest_rotation(query_H_canon, anchor_H_canon)
+        return row, plane * N + k, query_H_anchor, model_px
 
     def _keep_better(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
-                     verification: Verification, found: list[tuple[int, int, torch.Tensor, float]]
-                     ) -> tuple[Prediction, Verification]:
+                     verification: Verification, found: list[tuple[int, int, torch.Tensor, float]],
+                     other_product: bool = False) -> tuple[Prediction, Verification]:
         """The keypoint poses ``found`` (refined when the recognizer refines) where their verification distance is
-        lower than the answer's."""
+        lower than the answer's (``other_product``: they are another product's, taken only where they verify)."""
         from matl.data.image_files import fit_to_model
 
         _, gallery = self._build()
@@ -225,7 +248,7 @@ class KeypointPoses:
                                          min_visible=self.verify_min_visible)
 
         query_H_anchor, distance = start, verify(start)
-        if self.refiner is not None:  # refined from there, kept where it verifies better than the keypoint pose
+        if self.refiner is not None or self.verify_refine:  # refined from there, kept where it verifies better
             refiner, templates = self._candidate_refiner()
             upscale = torch.tensor([f[3] for f in found], dtype=torch.float64)
             refined = refiner(queries, index, start, templates, visibility=visibility,
@@ -234,7 +257,8 @@ class KeypointPoses:
             closer = (refined_distance < distance)[:, None, None]
             query_H_anchor = torch.where(closer, refined, start)
             distance = torch.minimum(refined_distance, distance)
-        better = [j for j, i in enumerate(rows) if float(distance[j]) < float(verification.distance[i])]
+        better = [j for j, i in enumerate(rows) if float(distance[j]) < float(verification.distance[i])
+                  and (not other_product or float(distance[j]) <= self.verify_max)]
         if not better:
             return pred, verification
         take = [rows[j] for j in better]
@@ -262,7 +286,10 @@ class KeypointPoses:
             query_H_anchor=_set(verification.query_H_anchor, take, new_H),
             feature_distance=_set(verification.feature_distance, take, feature_distance),
             distance=_set(verification.distance, take, kept),
-            verified=_set(verification.verified, take, kept <= self.verify_max))
+            # another product's pose verifies: the nearest product changes, but known stays the open-set statistic's
+            # to judge (the crop may show an enrolled product lying across the one it was cut for)
+            verified=verification.verified if other_product else _set(verification.verified, take,
+                                                                         kept <= self.verify_max))
         return pred, verification
 
 

@@ -60,7 +60,8 @@ def gallery(tmp_path: Path) -> Path:
 def wrong_pose_recognizer(**options) -> Recognizer:
     """One anchor, ``c()`` the mean colour, ``s()`` a fixed pose far from the truth (a shift of 20 px)."""
     wrong = torch.tensor([[1.0, 0.0, 20.0], [0.0, 1.0, -20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    return Recognizer(StubModel(wrong), SIZE, 1, "stub-model", threshold=None, foreground="none", **options)
+    options = {"threshold": None, "foreground": "none", **options}
+    return Recognizer(StubModel(wrong), SIZE, 1, "stub-model", **options)
 
 
 def error_px(H: np.ndarray) -> float:
@@ -114,3 +115,19 @@ def test_match_finds_the_plane_and_its_pose_in_model_pixels() -> None:
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named):
         KeypointPose(**{key: value})
+
+
+def test_the_next_nearest_product_is_taken_only_where_its_pose_verifies(tmp_path: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    write_png(tmp_path / "red_box" / "front.png", print_like(0, (0.8, 0.2, 0.1)))
+    # a flat print of the query's own mean colour: the nearest product by c() (the mean colour), with no keypoint
+    write_png(tmp_path / "decoy" / "front.png", np.broadcast_to(query.mean((0, 1)), (*GALLERY_HW, 3)).copy())
+    assert wrong_pose_recognizer().enrol(tmp_path, cache=False).predict(query).object == "decoy"
+    answer = wrong_pose_recognizer(keypoint_pose="unverified").enrol(tmp_path, cache=False).predict(query)
+    assert answer.nearest_object == "red_box" and error_px(answer.H) < 3.0
+    one = KeypointPose(mode="unverified", products=1)  # the answered product alone
+    assert wrong_pose_recognizer(keypoint_pose=one).enrol(tmp_path, cache=False).predict(query).object == "decoy"
+    # open set: another product's verified pose changes the nearest product, the statistic still decides known
+    strict = wrong_pose_recognizer(keypoint_pose="unverified", threshold=0.0).enrol(tmp_path, cache=False)
+    answer = strict.predict(query)
+    assert answer.nearest_object == "red_box" and answer.verification <= 0.1 and not answer.known
