@@ -200,6 +200,10 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             does not verify (judged by the ratio test).
         verify_occluded_copies: ``patches``: the share of the calibration's copies with an occluder across them
             (:func:`matl.inference.calibration._occluded_copies`); 0 (default): whole copies.
+        keypoint_pose: ``unverified`` (default): an answer whose pose does not verify is matched by SIFT keypoints
+            against its product's planes, then the next nearest products' (:mod:`matl.inference.keypoint_pose`), and
+            takes that pose where it verifies better (another product only where it verifies); ``always``; ``none``;
+            or a :class:`~matl.inference.keypoint_pose.KeypointPose` with its own settings.
         refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
             unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
             query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
@@ -422,8 +426,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
     def time_stages(self, timer: StageTimer | None) -> None:
         """Fill ``timer`` (:class:`matl.utils.timing.StageTimer`) with the milliseconds of each stage of the calls
         that follow: ``foreground``, ``framing`` (to the model frame), ``networks``, ``search``, ``alignment``,
-        ``refinement``, ``verification`` (the further candidates' networks and poses included) and ``retries``
-        (``foreground.retry_insets``: everything a retried query runs again); None stops it and leaves no cost.
+        ``refinement``, ``verification`` (the further candidates' networks and poses included), ``keypoints``
+        (``keypoint_pose``) and ``retries`` (``foreground.retry_insets``: everything a retried query runs again);
+        None stops it and leaves no cost.
         Time the stages after enrolling: a gallery changed afterwards is answered untimed inside the networks."""
         with self._lock:
             if self.stage_timer is not None:

@@ -61,7 +61,7 @@ class KeypointPose:
     """The keypoint pose's settings (Recognizer's ``keypoint_pose*`` options).
 
     Args:
-        mode: ``none``, ``unverified`` (answers whose pose does not verify) or ``always``.
+        mode: ``unverified`` (answers whose pose does not verify; the Recognizer's default), ``always`` or ``none``.
         size: the working size, px on the longer side, of the crop and of the planes' canonical images.
         min_inliers: fewest RANSAC inliers of a keypoint pose.
         ratio: Lowe's ratio test.

@@ -83,7 +83,7 @@ class RecognizerOptions:
     verify_min_visible: float = 0.3
     verify_occluded_copies: float = 0.0
     refine_check: str = "none"
-    keypoint_pose: str | KeypointPose = "none"
+    keypoint_pose: str | KeypointPose = "unverified"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
