@@ -71,9 +71,9 @@ def error_px(H: np.ndarray) -> float:
 
 def test_a_hidden_product_is_posed_by_its_visible_keypoints(gallery: Path) -> None:
     query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
-    without = wrong_pose_recognizer().enrol(gallery, cache=False).predict(query)
+    without = wrong_pose_recognizer(keypoint_pose="none").enrol(gallery, cache=False).predict(query)
     assert without.object == "red_box" and error_px(without.H) > 15.0 and not without.verification <= 0.1
-    rec = wrong_pose_recognizer(keypoint_pose="unverified").enrol(gallery, cache=False)
+    rec = wrong_pose_recognizer().enrol(gallery, cache=False)  # keypoint_pose=unverified: the default
     answer = rec.predict(query)
     assert answer.object == "red_box" and error_px(answer.H) < 3.0
     assert answer.verification < without.verification - 0.3
@@ -90,7 +90,7 @@ def test_a_pose_that_verifies_is_left_alone_and_a_worse_one_never_taken(gallery:
     assert error_px(always.predict(query).H) < 3.0
     # a crop with no keypoint of the product (flat grey): nothing to match, the networks' answer stays
     flat = np.full((*QUERY_HW, 3), 0.5, np.float32)
-    base = wrong_pose_recognizer().enrol(gallery, cache=False).predict(flat)
+    base = wrong_pose_recognizer(keypoint_pose="none").enrol(gallery, cache=False).predict(flat)
     kept = wrong_pose_recognizer(keypoint_pose="always").enrol(gallery, cache=False).predict(flat)
     np.testing.assert_array_equal(kept.H, base.H)
     assert kept.object == base.object and kept.verification == base.verification
@@ -122,7 +122,7 @@ def test_the_next_nearest_product_is_taken_only_where_its_pose_verifies(tmp_path
     write_png(tmp_path / "red_box" / "front.png", print_like(0, (0.8, 0.2, 0.1)))
     # a flat print of the query's own mean colour: the nearest product by c() (the mean colour), with no keypoint
     write_png(tmp_path / "decoy" / "front.png", np.broadcast_to(query.mean((0, 1)), (*GALLERY_HW, 3)).copy())
-    assert wrong_pose_recognizer().enrol(tmp_path, cache=False).predict(query).object == "decoy"
+    assert wrong_pose_recognizer(keypoint_pose="none").enrol(tmp_path, cache=False).predict(query).object == "decoy"
     answer = wrong_pose_recognizer(keypoint_pose="unverified").enrol(tmp_path, cache=False).predict(query)
     assert answer.nearest_object == "red_box" and error_px(answer.H) < 3.0
     one = KeypointPose(mode="unverified", products=1)  # the answered product alone
