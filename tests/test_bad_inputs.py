@@ -577,6 +577,8 @@ CASES = [
         ["ckpt=pretrained", "methods=[matl]", "open_set_statistic=foo"], "matl: open_set_statistic='foo' is invalid"),
     cli("unseen refine_check=loss (a method's predict option)", "matl.unseen",
         ["ckpt=pretrained", "methods=[matl_refine]", "refine_check=loss"], "refine_check='loss' is invalid"),
+    cli("unseen keypoint_pose=often (a method's predict option)", "matl.unseen",
+        ["ckpt=pretrained", "methods=[matl]", "keypoint_pose=often"], "keypoint_pose='often' is invalid"),
     cli("eval data=foo (unknown dataset)", "matl.eval", ["data=foo"], "unknown option data=foo"),
     # --- image files (queries and gallery images go through the same loader)
     image("image: text file named .png", lambda p: (p.write_text("hello"), p)[1], "not an image"),
