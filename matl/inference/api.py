@@ -484,12 +484,13 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification = self._answer(recognizer, prepared)
+        if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
+            # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
+            pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
         if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries,
                                                                        verification)
-        if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
-            pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None
