@@ -53,8 +53,8 @@ class QueryPasses:
                             ) -> tuple[Prediction, torch.Tensor, Verification]:
         """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
         GrabCut from wider insets (:meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
-        ``retry_thresholds``) and answered again; it keeps the answer
-        whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
+        ``retry_thresholds``) and answered again; it keeps an answer that verifies over one that does not, then the
+        one whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
         keeps the crop's size)."""
         retried: list[int] = []
         again: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
@@ -69,11 +69,14 @@ class QueryPasses:
         if not again:
             return pred, queries, verification
         alt_pred, alt_queries, _, alt_verification = self._answer(recognizer, again)
-        best = verification.distance.clone()
+        # an answer that verifies first, then the lowest distance (an answer keypoint_pose took from another product
+        # can be closer and still not count as verified)
+        best = {i: (not bool(verification.verified[i]), float(verification.distance[i])) for i in set(retried)}
         take: dict[int, int] = {}
         for j, i in enumerate(retried):
-            if float(alt_verification.distance[j]) < float(best[i]):
-                best[i], take[i] = alt_verification.distance[j], j
+            candidate = (not bool(alt_verification.verified[j]), float(alt_verification.distance[j]))
+            if candidate < best[i]:
+                best[i], take[i] = candidate, j
         if not take:
             return pred, queries, verification
         rows, source = list(take), list(take.values())
