@@ -87,6 +87,9 @@ class GrabCutForeground:
         retry_insets: fractions of the crop's side (each in (0, 0.5)): the insets of the retries of a query
             whose first answer does not verify (empty: no retries). The recognizer runs them
             (:class:`matl.inference.api.Recognizer`); they need verification (``verify_top_k`` > 0).
+        max_side: a crop whose longer side is larger is segmented on a copy resized to this many px (area
+            averaging; the inset and the opening scaled with it) and its mask resized back (GrabCut's time grows
+            with the pixels: seconds for a 1000 px crop); None: at the crop's own size.
     """
 
     inset_px: int = 2
@@ -98,8 +101,12 @@ class GrabCutForeground:
     black_fraction: float = 0.5
     seed: int = 0
     retry_insets: tuple[float, ...] = (0.08, 0.12)
+    max_side: int | None = 200
 
     def __post_init__(self) -> None:
+        if self.max_side is not None and (isinstance(self.max_side, bool) or int(self.max_side) < 16):
+            raise MatlError(f"foreground grabcut: max_side={self.max_side}: use a side in px >= 16 (e.g. 200), or null "
+                            "to segment every crop at its own size")
         try:
             self.retry_insets = tuple(float(f) for f in self.retry_insets)
         except (TypeError, ValueError):
@@ -155,6 +162,22 @@ class GrabCutForeground:
         rectangle is empty, GrabCut finds nothing)."""
         h, w = rgb.shape[:2]
         if not self.segments(rgb) or h <= 2 * inset + 2 or w <= 2 * inset + 2:
+            return None
+        factor = 1.0 if self.max_side is None else min(1.0, int(self.max_side) / max(h, w))
+        if factor < 1.0:  # segmented small, the mask resized back
+            size = (max(1, round(w * factor)), max(1, round(h * factor)))
+            small = cv2.resize(np.ascontiguousarray(rgb, dtype=np.float32), size, interpolation=cv2.INTER_AREA)
+            mask = self._segment_at(small, max(1, round(inset * factor)))
+            if mask is None:
+                return None
+            mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
+            return mask.astype(np.float32) if mask.any() else None
+        return self._segment_at(rgb, inset)
+
+    def _segment_at(self, rgb: np.ndarray, inset: int) -> np.ndarray | None:
+        """:meth:`segment` of ``rgb`` as it is (its size, ``inset`` px)."""
+        h, w = rgb.shape[:2]
+        if h <= 2 * inset + 2 or w <= 2 * inset + 2:
             return None
         bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
         labels = np.zeros((h, w), np.uint8)
