@@ -330,3 +330,24 @@ def test_recognizer_with_the_learned_foreground(tmp_path: Path) -> None:
     assert match.object in rec.objects and match.H.shape == (3, 3)
     options = rec.options()["foreground"]
     assert options["threshold"] == 0.5 and options["retry_thresholds"] == (0.3, 0.7)
+
+
+def test_a_large_crop_is_segmented_on_a_smaller_copy() -> None:
+    rng = np.random.default_rng(0)
+    crop = np.empty((600, 480, 3), np.float32)
+    crop[:] = rng.uniform(0.0, 0.1, 3)  # a dark floor with a little texture
+    crop += rng.normal(0.0, 0.01, crop.shape).astype(np.float32)
+    crop[150:450, 120:360] = (0.9, 0.5, 0.2)  # the product
+    crop[200:260, 150:330] = (0.2, 0.3, 0.9)
+    crop = np.clip(crop, 0, 1)
+    small, full = GrabCutForeground(max_side=200)(crop), GrabCutForeground(max_side=None)(crop)
+    assert small.shape == full.shape == crop.shape[:2] and set(np.unique(small)) <= {0.0, 1.0}
+    truth = np.zeros(crop.shape[:2], bool)
+    truth[150:450, 120:360] = True
+    for mask in (small, full):
+        assert (mask.astype(bool) & truth).sum() / (mask.astype(bool) | truth).sum() > 0.95
+    # a crop no larger than max_side is segmented as it is
+    little = cv2.resize(crop, (120, 150), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(GrabCutForeground(max_side=200)(little), GrabCutForeground(max_side=None)(little))
+    with pytest.raises(MatlError, match="max_side"):
+        GrabCutForeground(max_side=4)
