@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -106,7 +107,14 @@ class KeypointPose:
         if self.method not in RANSAC_METHODS:
             raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
-        self._sift: SiftRansacMatcher | None = None
+        self._local = threading.local()  # each thread its own SIFT detector (recognizers may share these settings)
+
+    def __getstate__(self) -> dict[str, Any]:  # copies and pickles carry the settings, not the detectors
+        return {k: v for k, v in self.__dict__.items() if k != "_local"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
 
     @property
     def active(self) -> bool:
@@ -115,11 +123,13 @@ class KeypointPose:
     def _extract(self, rgb: np.ndarray) -> ImageFeatures:
         """SIFT features of ``rgb`` ``(H, W, 3)`` float in [0, 1] at the working size, keypoints in ``rgb``'s own
         pixels (pixel centres at integers)."""
-        if self._sift is None:
-            self._sift = SiftRansacMatcher(contrast_threshold=self.contrast_threshold, edge_threshold=10.0,
-                                           ratio=self.ratio, max_features=self.max_features)
+        sift = getattr(self._local, "sift", None)
+        if sift is None:
+            sift = self._local.sift = SiftRansacMatcher(contrast_threshold=self.contrast_threshold,
+                                                        edge_threshold=10.0, ratio=self.ratio,
+                                                        max_features=self.max_features)
         scaled, factor = _scaled(rgb, self.size)
-        features = self._sift.extract(torch.from_numpy(np.ascontiguousarray(scaled)).permute(2, 0, 1)[None])[0]
+        features = sift.extract(torch.from_numpy(np.ascontiguousarray(scaled)).permute(2, 0, 1)[None])[0]
         return ImageFeatures((features.keypoints + 0.5) / factor - 0.5, features.descriptors)
 
     def plane_features(self, canon_u8: torch.Tensor) -> ImageFeatures:

@@ -3,6 +3,7 @@ keypoints, and kept only where it verifies better."""
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import cv2
@@ -107,6 +108,8 @@ def test_match_finds_the_plane_and_its_pose_in_model_pixels() -> None:
     assert index == 2 and inliers >= settings.min_inliers
     err = corner_error_px(torch.from_numpy(H)[None], torch.from_numpy(query_H_canon)[None], (SIZE, SIZE))
     assert float(err) < 1.0
+    again = pickle.loads(pickle.dumps(settings))  # after use: the settings travel, each copy its own detector
+    assert again == settings and again.match(again.query_features(query), planes, 1.0)[0] == 2
 
 
 @pytest.mark.parametrize(("key", "value", "named"), [
