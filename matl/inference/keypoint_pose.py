@@ -33,9 +33,9 @@ from matl.baselines.keypoints import (
     vote_by_ransac,
 )
 from matl.baselines.sift import SiftRansacMatcher
-from matl.geometry import compose_query_H_canon
-from matl.inference.images import _query_visibility
-from matl.inference.verify import Verification, verification_distance
+from matl.data.image_files import fit_to_model
+from matl.inference.images import _query_visibility, _with_rows
+from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 from matl.utils.timing import stage
@@ -202,13 +202,18 @@ class KeypointPoses:
             for j, i in enumerate(rows):
                 order = [o for o in torch.argsort(distances[j]).tolist() if o != ranked[i][0]]
                 ranked[i] += order[:settings.products - 1]
+        # the crops at the model's size as the networks saw them before any pose pass, and their visibility: once
+        sub = [prepared[i] for i in rows]
+        queries = torch.stack([fit_to_model(masked, self.image_size, self.query_fill)[0] for masked, _, _ in sub])
+        framed = (queries.to(self.device), _query_visibility(sub, self.image_size, self.query_fill, self.device),
+                  {i: j for j, i in enumerate(rows)})
         features: dict[int, ImageFeatures] = {}
         for rank in range(settings.products):
             todo = [i for i in rows if rank < len(ranked[i]) and (rank == 0 or not bool(verification.verified[i]))]
             found = [c for i in todo if (c := self._keypoint_candidate(prepared[i], query_H_file[i], i,
                                                                       by_object[ranked[i][rank]], features))]
             if found:
-                pred, verification = self._keep_better(prepared, pred, verification, found, rank > 0)
+                pred, verification = self._keep_better(pred, verification, found, framed, rank > 0)
         return pred, verification
 
     def _keypoint_candidate(self, prepared: tuple[np.ndarray, np.ndarray, np.ndarray | None],
@@ -235,35 +240,25 @@ class KeypointPoses:
         k, query_H_anchor = _smallest_rotation(query_H_canon, anchor_H_canon)
         return row, plane * N + k, query_H_anchor, model_px
 
-    def _keep_better(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
-                     verification: Verification, found: list[tuple[int, int, torch.Tensor, float]],
+    def _keep_better(self, pred: Prediction, verification: Verification,
+                     found: list[tuple[int, int, torch.Tensor, float]],
+                     framed: tuple[torch.Tensor, torch.Tensor | None, dict[int, int]],
                      other_product: bool = False) -> tuple[Prediction, Verification]:
         """The keypoint poses ``found`` (refined when the recognizer refines) where their verification distance is
-        lower than the answer's (``other_product``: they are another product's, taken only where they verify)."""
-        from matl.data.image_files import fit_to_model
-
-        _, gallery = self._build()
+        lower than the answer's (``other_product``: they are another product's, taken only where they verify);
+        ``framed``: the model-size queries, their visibility (or None) and each row's position in them."""
         rows = [f[0] for f in found]
         index = torch.tensor([f[1] for f in found])
         start = torch.stack([f[2] for f in found])
-        sub = [prepared[i] for i in rows]
-        queries = torch.stack([fit_to_model(masked, self.image_size, self.query_fill)[0] for masked, _, _ in sub])
-        queries = queries.to(self.device)
-        visibility = _query_visibility(sub, self.image_size, self.query_fill, self.device)
-        anchors = gallery.images[index.to(gallery.images.device)]
-
-        def verify(poses: torch.Tensor) -> torch.Tensor:
-            return verification_distance(queries, poses, anchors, self.verify_blur, skip_empty=True,
-                                         visibility=visibility, statistic=self.verify_statistic,
-                                         min_visible=self.verify_min_visible)
-
-        query_H_anchor, distance = start, verify(start)
+        at = [framed[2][i] for i in rows]
+        queries, visibility = framed[0][at], None if framed[1] is None else framed[1][at]
+        query_H_anchor, distance = start, self._pose_check(queries, start, index, visibility)
         if self.refiner is not None or self.verify_refine:  # refined from there, kept where it verifies better
             refiner, templates = self._candidate_refiner()
             upscale = torch.tensor([f[3] for f in found], dtype=torch.float64)
             refined = refiner(queries, index, start, templates, visibility=visibility,
                               upscale=upscale).query_H_anchor.double()
-            refined_distance = verify(refined)
+            refined_distance = self._pose_check(queries, refined, index, visibility)
             closer = (refined_distance < distance)[:, None, None]
             query_H_anchor = torch.where(closer, refined, start)
             distance = torch.minimum(refined_distance, distance)
@@ -271,40 +266,19 @@ class KeypointPoses:
                   and (not other_product or float(distance[j]) <= self.verify_max)]
         if not better:
             return pred, verification
-        take = [rows[j] for j in better]
-        g = index[better]
-        device = pred.gallery_index.device
-        new_H = query_H_anchor[better].to(device)
-        features = pred.features
-        recognizer = self._gallery_recognizer()
+        take, g, new_H = [rows[j] for j in better], index[better], query_H_anchor[better]
         feature_distance = verification.distance.new_full((len(better),), float("nan"))
-        if features is not None and getattr(recognizer, "gallery_features", None) is not None:
-            feature_distance = (features[take].float() - recognizer.gallery_features[g.to(features.device)].float()
+        gallery_features = getattr(self._gallery_recognizer(), "gallery_features", None)
+        if pred.features is not None and gallery_features is not None:
+            feature_distance = (pred.features[take].float() - gallery_features[g.to(pred.features.device)].float()
                                 ).norm(dim=1).to(feature_distance)
-        pred = dataclasses.replace(
-            pred, gallery_index=_set(pred.gallery_index, take, g), object_index=_set(pred.object_index, take,
-                                                                                      gallery.object_index[g]),
-            plane_index=_set(pred.plane_index, take, gallery.plane_index[g]),
-            anchor_index=_set(pred.anchor_index, take, gallery.anchor_index[g]),
-            distance=_set(pred.distance, take, feature_distance),
-            query_H_anchor=_set(pred.query_H_anchor, take, new_H),
-            query_H_canon=_set(pred.query_H_canon, take, compose_query_H_canon(new_H.double(),
-                                                                               gallery.anchor_H_canon64()[g])))
+        pred = self._answered(pred, take, g, new_H, feature_distance)
         kept = distance[better].to(verification.distance)
-        verification = dataclasses.replace(
-            verification, gallery_index=_set(verification.gallery_index, take, g),
-            query_H_anchor=_set(verification.query_H_anchor, take, new_H),
-            feature_distance=_set(verification.feature_distance, take, feature_distance),
-            distance=_set(verification.distance, take, kept),
-            # another product's pose verifies: the nearest product changes, but known stays the open-set statistic's
-            # to judge (the crop may show an enrolled product lying across the one it was cut for)
-            verified=verification.verified if other_product else _set(verification.verified, take,
-                                                                         kept <= self.verify_max))
-        return pred, verification
-
-
-def _set(values: torch.Tensor, rows: list[int], new: torch.Tensor) -> torch.Tensor:
-    """A copy of ``values`` with rows ``rows`` set to ``new`` (in ``values``' dtype and device)."""
-    out = values.clone()
-    out[rows] = new.to(out.device, out.dtype)
-    return out
+        # another product's pose verifies: the nearest product changes, but known stays the open-set statistic's to
+        # judge (the crop may show an enrolled product lying across the one it was cut for)
+        verified = verification.verified[take] if other_product else kept <= self.verify_max
+        source = list(range(len(take)))
+        answer = {"gallery_index": g, "query_H_anchor": new_H, "feature_distance": feature_distance, "distance": kept,
+                  "verified": verified}
+        return pred, dataclasses.replace(verification, **{name: _with_rows(getattr(verification, name), take, value,
+                                                                           source) for name, value in answer.items()})

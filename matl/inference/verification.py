@@ -14,6 +14,7 @@ import torch
 
 from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
+from matl.inference.images import _with_rows
 from matl.inference.verify import CandidatePose, Verification, verification_distance, verify_candidates
 from matl.models.prediction import Prediction
 
@@ -98,18 +99,24 @@ class Verifying:
 
     def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
         """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""
-        device = pred.gallery_index.device
-        index = verification.gallery_index.to(device)
-        changed = index != pred.gallery_index
-        if not bool(changed.any()):
+        changed = (verification.gallery_index.to(pred.gallery_index.device) != pred.gallery_index)
+        rows = changed.nonzero()[:, 0].tolist()
+        if not rows:
             return pred
+        return self._answered(pred, rows, verification.gallery_index[rows], verification.query_H_anchor[rows],
+                              verification.feature_distance[rows])
+
+    def _answered(self, pred: Prediction, rows: list[int], gallery_index: torch.Tensor, query_H_anchor: torch.Tensor,
+                  distance: torch.Tensor) -> Prediction:
+        """``pred`` with rows ``rows`` answered by gallery anchors ``gallery_index`` ``(R,)`` at pixel poses
+        ``query_H_anchor`` ``(R, 3, 3)`` (kept in ``pred``'s dtype), ``distance`` ``(R,)`` their feature distances;
+        the object, plane, anchor and ``query_H_canon`` follow from them."""
         g = self.gallery
-        rows = changed[:, None, None]
-        query_H_anchor = torch.where(rows, verification.query_H_anchor.to(device, pred.query_H_anchor.dtype),
-                                     pred.query_H_anchor)
-        query_H_canon = torch.where(rows, compose_query_H_canon(query_H_anchor.double(),
-                                                                g.anchor_H_canon64()[index]), pred.query_H_canon)
-        distance = torch.where(changed, verification.feature_distance.to(device, pred.distance.dtype), pred.distance)
-        return dataclasses.replace(pred, gallery_index=index, object_index=g.object_index[index],
-                                   plane_index=g.plane_index[index], anchor_index=g.anchor_index[index],
-                                   distance=distance, query_H_anchor=query_H_anchor, query_H_canon=query_H_canon)
+        index = gallery_index.to(g.anchor_H_canon.device)
+        H = query_H_anchor.to(index.device, pred.query_H_anchor.dtype)
+        answer = {"gallery_index": index, "object_index": g.object_index[index], "plane_index": g.plane_index[index],
+                  "anchor_index": g.anchor_index[index], "distance": distance, "query_H_anchor": H,
+                  "query_H_canon": compose_query_H_canon(H.double(), g.anchor_H_canon64()[index])}
+        source = list(range(len(rows)))
+        return dataclasses.replace(pred, **{name: _with_rows(getattr(pred, name), rows, value, source)
+                                            for name, value in answer.items()})
