@@ -550,6 +550,7 @@ CASES = [
     train_cli("train optimized_metric=val/loss", ["optimized_metric=val/loss"],
               "optimized_metric='val/loss' is invalid"),
     train_cli("train ckpt_path=missing file", ["ckpt_path=/nonexistent/last.ckpt"], "no such checkpoint file"),
+    train_cli("train init_from=missing file", ["init_from=/nonexistent/model.ckpt"], "no such checkpoint file (a model"),
     train_cli("train model.optimizer.lr=0", ["model.optimizer.lr=0"], "model.optimizer.lr=0 is invalid"),
     train_cli("train callbacks.model_checkpoint.last_every_n_train_steps=-5",
               ["callbacks.model_checkpoint.last_every_n_train_steps=-5"],

@@ -57,3 +57,29 @@ def test_tiny_occluded_run_from_another_runs_weights(tiny_train_cfg) -> None:
     other = tiny_train_cfg(["N=2", f"init_from={best}"], run="other")
     with pytest.raises(MatlError, match=r"init_from=.* with N=4"):
         init_weights(other.init_from, other, build(other)[1])
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA GPU")
+def test_trainer_gpu_on_a_machine_without_one_is_one_line(tiny_train_cfg) -> None:
+    cfg = tiny_train_cfg(["trainer=gpu"], run="gpu")
+    with pytest.raises(MatlError, match=r"trainer.accelerator=gpu but this machine has no CUDA GPU.*trainer=default"):
+        train(cfg)
+    assert not (Path(cfg.paths.output_dir) / "metrics.json").exists()
+
+
+def test_the_shipped_default_recipe_fine_tunes_the_whole_product_model(tmp_path: Path) -> None:
+    """experiment=pretrained_occluded: experiment=pretrained's settings, occluders on, started from the model the
+    first command publishes, 2000 steps of a schedule laid out over 8 epochs, published into the package."""
+    from tests.conftest import compose_config
+
+    whole = compose_config("train", ["experiment=pretrained"], tmp_path / "whole")
+    occluded = compose_config("train", ["experiment=pretrained_occluded"], tmp_path / "occluded")
+    assert occluded.data.occlude is not None and whole.data.occlude is None
+    assert occluded.init_from == "runs/pretrained_whole.ckpt" and occluded.publish == "shipped"
+    assert occluded.trainer.accelerator == "gpu" and occluded.model.scheduler.T_max == 8
+    steps = occluded.trainer.max_epochs * occluded.data.train_triplets // occluded.data.batch_size
+    assert steps == 2000
+    assert occluded.model.stn == whole.model.stn and occluded.model.feature_net == whole.model.feature_net
+    assert occluded.model.align.optimizer.lr == 0.0003 and occluded.model.optimizer.lr == 0.003
+    assert {k: v for k, v in occluded.model.align.items() if k != "optimizer"} == {
+        k: v for k, v in whole.model.align.items() if k != "optimizer"}

@@ -266,8 +266,9 @@ def _trace(module: nn.Module, example: torch.Tensor | tuple[torch.Tensor, ...], 
 
 
 def _max_diffs(eager: Any, exported: Any, names: tuple[str, ...]) -> dict[str, float]:
-    """Largest absolute difference per output between (tuples of) eager and exported outputs; inf on a
-    shape mismatch (booleans compare as 0 / 1)."""
+    """Largest difference per output between (tuples of) eager and exported outputs, absolute where the eager
+    value is within [-1, 1] and relative to it beyond (a pixel homography's entries reach ~100, where float32
+    rounds at ~1e-5); inf on a shape mismatch (booleans compare as 0 / 1)."""
     eager = eager if isinstance(eager, tuple) else (eager,)
     exported = exported if isinstance(exported, tuple) else (exported,)
     diffs = {}
@@ -275,7 +276,8 @@ def _max_diffs(eager: Any, exported: Any, names: tuple[str, ...]) -> dict[str, f
         if a.shape != b.shape:
             diffs[name] = float("inf")
         else:
-            diffs[name] = float((a.double() - b.double()).abs().max()) if a.numel() else 0.0
+            a, b = a.double(), b.double()
+            diffs[name] = float(((a - b).abs() / a.abs().clamp(min=1.0)).max()) if a.numel() else 0.0
     return diffs
 
 
@@ -356,7 +358,7 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
 
 @torch.no_grad()
 def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: int, out_dir: str | Path,
-                     fmt: str = "torchscript", tolerance: float = 1e-4, check_batches: tuple[int, ...] = (1, 3),
+                     fmt: str = "torchscript", tolerance: float = 5e-4, check_batches: tuple[int, ...] = (1, 3),
                      meta: dict[str, Any] | None = None, seed: int = 0,
                      num_anchors: int | None = None, align: nn.Module | None = None) -> dict[str, Any]:
     """Export the gallery and query networks (and the alignment stage), check them against the eager ones,
@@ -372,9 +374,10 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
         image_size: ``S``.
         out_dir: destination folder (created).
         fmt: ``torchscript``, ``export`` or ``onnx`` (run in onnxruntime for the check).
-        tolerance: largest accepted absolute difference between exported and eager outputs (1e-4, as
-            the compiled query path's: a trained 100 px model differs by ~3e-5 in float32 rounding alone,
-            pixel homography entries being up to ~100).
+        tolerance: largest accepted difference between exported and eager outputs, absolute within [-1, 1]
+            and relative beyond (5e-4: a trained 100 px model differs by ~3e-5 in float32 rounding alone; the
+            pixel homography's entries, up to ~100, are compared relative to their size, and s()'s warp of the
+            random check images moves by that rounding times the noise's gradient: up to ~1.4e-4).
         check_batches: batch sizes checked (random images, and the same images brightened), so a
             batch size baked into the export would be caught.
         meta: extra fields for ``export.json`` (N, checkpoint, ...).

@@ -44,7 +44,7 @@ def _is_global_zero() -> bool:
 
 # ------------------------------------------------------------------------------ naming checkpoints
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
-#: the shipped default model (experiment=pretrained: matl_camera with the alignment stage)
+#: the shipped default model (experiment=pretrained_occluded: matl_camera, alignment stage, trained with occluders)
 PRETRAINED = WEIGHTS_DIR / "matl_default.ckpt"
 #: the shipped fast model (experiment=pretrained_fast: a cheaper s(), no alignment stage; meant for refine=True)
 PRETRAINED_FAST = WEIGHTS_DIR / "matl_fast.ckpt"

@@ -147,6 +147,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     import lightning as L
     import torch
 
+    accelerator = str(OmegaConf.select(cfg, "trainer.accelerator", default="cpu"))
+    if accelerator in ("gpu", "cuda") and not torch.cuda.is_available():
+        raise MatlError(f"trainer.accelerator={accelerator} but this machine has no CUDA GPU that torch can use: "
+                        "train on the CPU with trainer=default (or install a CUDA build of torch)")
     log_lightning_once()
 
     from matl.utils.timing import measure_query_ms

@@ -238,6 +238,12 @@ def validate_config(cfg: DictConfig) -> None:
             key = missing[0] if missing[0].startswith("data.source.") else f"data.source.{missing[0]}"
             raise ConfigError(f"{key} is not set: pass {key}=<path> (see docs/datasets.md)")
 
+    init_from = _get(cfg, "init_from")
+    if task == "train" and init_from not in (None, "", "pretrained", "pretrained_fast"):
+        path = Path(str(init_from)).expanduser()
+        if not path.is_file():
+            raise ConfigError(f"init_from={path}: no such checkpoint file (a model to start from: a checkpoint path, "
+                              "pretrained or pretrained_fast)")
     ckpt_path = _get(cfg, "ckpt_path")
     if task == "train" and ckpt_path not in (None, ""):
         path = Path(str(ckpt_path)).expanduser()

@@ -156,7 +156,7 @@ def test_onnx_from_a_checkpoint_describes_the_files(tmp_path: Path, cache_dir: P
     out = tmp_path / "exported"
     info = export(compose_config("export", [f"ckpt={ckpt}", f"out={out}", "format=onnx"], tmp_path / "run"))
     saved = json.loads((out / "export.json").read_text())
-    assert saved["format"] == "onnx" and saved["N"] == 4 and saved["tolerance"] == 1e-4
+    assert saved["format"] == "onnx" and saved["N"] == 4 and saved["tolerance"] == 5e-4
     assert max(info["max_abs_diff"].values()) <= 1e-5
     # anchor 1 of 4: a quarter turn about ((S - 1) / 2, (S - 1) / 2), counter-clockwise on screen (y down)
     anchors = torch.tensor(saved["anchor_k_H_canon"], dtype=torch.float64)

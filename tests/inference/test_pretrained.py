@@ -30,10 +30,12 @@ def test_the_shipped_model_is_small_and_loads_offline() -> None:
     assert "optimizer_states" not in ckpt
     rec = Recognizer.pretrained()
     assert rec.image_size == ckpt["matl_image_size"] == 100 and rec.num_anchors == ckpt["matl_num_anchors"]
-    # the shipped recipe (experiment=pretrained): input normalisation and the alignment stage
+    # the shipped recipe (experiment=pretrained, fine-tuned by experiment=pretrained_occluded): input normalisation and
+    # the alignment stage, trained with occluders
     model = ckpt["matl_config"]["model"]
     assert model["feature_net"]["input_norm"] == model["stn"]["regressor"]["input_norm"] == "channel"
     assert rec.model.align is not None and any(k.startswith("align.") for k in ckpt["state_dict"])
+    assert ckpt["matl_config"]["data"]["occlude"]["_target_"] == "matl.data.occlusion.OccludeQueries"
 
 
 @needs_model
