@@ -76,6 +76,10 @@ class KeypointPose:
         contrast_threshold: SIFT's DoG contrast threshold (OpenCV's default; the paper's baseline takes 0.004, ten
             times the keypoints and the time).
         max_features: the strongest keypoints kept per image.
+        switch_margin: an answer that verifies at none of the ``products`` tried becomes the one of them whose
+            planes have most keypoint inliers (at least ``min_inliers``) where that product has at least this many
+            more than the answered one (which counts 0 without a keypoint pose); still not verified, so the open
+            set judges it by its statistic. None: the answer stays the nearest product's.
     """
 
     mode: str = "none"
@@ -87,6 +91,7 @@ class KeypointPose:
     products: int = 5
     contrast_threshold: float = 0.04
     max_features: int = 500
+    switch_margin: int | None = 3
 
     def __post_init__(self) -> None:
         if self.mode not in KEYPOINT_POSE_MODES:
@@ -104,6 +109,10 @@ class KeypointPose:
         if isinstance(self.products, bool) or not isinstance(self.products, int) or self.products < 1:
             raise MatlError(f"KeypointPose products={self.products!r} is invalid: use an integer >= 1 (1: the "
                             "answered product alone)")
+        margin = self.switch_margin
+        if margin is not None and (isinstance(margin, bool) or not isinstance(margin, int) or margin < 0):
+            raise MatlError(f"KeypointPose switch_margin={margin!r} is invalid: use an integer number of inliers >= 0, "
+                            "or None to keep the nearest product")
         if self.method not in RANSAC_METHODS:
             raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
@@ -208,20 +217,37 @@ class KeypointPoses:
         framed = (queries.to(self.device), _query_visibility(sub, self.image_size, self.query_fill, self.device),
                   {i: j for j, i in enumerate(rows)})
         features: dict[int, ImageFeatures] = {}
+        tried: dict[int, list[tuple[int, int, torch.Tensor, float, int] | None]] = {i: [] for i in rows}
         for rank in range(settings.products):
             todo = [i for i in rows if rank < len(ranked[i]) and (rank == 0 or not bool(verification.verified[i]))]
-            found = [c for i in todo if (c := self._keypoint_candidate(prepared[i], query_H_file[i], i,
-                                                                      by_object[ranked[i][rank]], features))]
+            found = []
+            for i in todo:
+                candidate = self._keypoint_candidate(prepared[i], query_H_file[i], i, by_object[ranked[i][rank]],
+                                                     features)
+                tried[i].append(candidate)
+                if candidate is not None:
+                    found.append(candidate)
             if found:
                 pred, verification = self._keep_better(pred, verification, found, framed, rank > 0)
+        if settings.switch_margin is not None:  # verified nowhere: the product whose keypoints match clearly most
+            switch = []
+            for i in rows:
+                if bool(verification.verified[i]) or len(tried[i]) < 2:
+                    continue
+                answered = tried[i][0][4] if tried[i][0] is not None else 0
+                best = max((c for c in tried[i][1:] if c is not None), key=lambda c: c[4], default=None)
+                if best is not None and best[4] >= answered + settings.switch_margin:
+                    switch.append(best)
+            if switch:
+                pred, verification = self._keep_better(pred, verification, switch, framed, True, force=True)
         return pred, verification
 
     def _keypoint_candidate(self, prepared: tuple[np.ndarray, np.ndarray, np.ndarray | None],
                             model_H_file: torch.Tensor, row: int, planes: list[int],
-                            features: dict[int, ImageFeatures]) -> tuple[int, int, torch.Tensor, float] | None:
+                            features: dict[int, ImageFeatures]) -> tuple[int, int, torch.Tensor, float, int] | None:
         """Query ``row``'s keypoint pose against the enrolled planes ``planes`` (one product's): ``(row, gallery
-        index, model-frame query_H_anchor (3, 3) float64, model px per file px)`` of the plane with most inliers,
-        or None (``features``: each row's query features, computed at the first need)."""
+        index, model-frame query_H_anchor (3, 3) float64, model px per file px, inliers)`` of the plane with most
+        inliers, or None (``features``: each row's query features, computed at the first need)."""
         settings: KeypointPose = self.keypoint_pose
         masked, rgb, alpha = prepared
         model_H_file = model_H_file.double()
@@ -230,7 +256,7 @@ class KeypointPoses:
             return None
         if row not in features:  # a foreground step's crop whole; a given alpha applied
             features[row] = settings.query_features(rgb if alpha is not None else masked)
-        index, file_H_canon, _ = settings.match(features[row], [self._plane_keypoints(p) for p in planes],
+        index, file_H_canon, inliers = settings.match(features[row], [self._plane_keypoints(p) for p in planes],
                                                 1.0 / model_px)
         if index < 0:
             return None
@@ -238,15 +264,16 @@ class KeypointPoses:
         query_H_canon = model_H_file @ torch.from_numpy(file_H_canon)
         anchor_H_canon = self._build()[1].anchor_H_canon64()[plane * N:(plane + 1) * N]
         k, query_H_anchor = _smallest_rotation(query_H_canon, anchor_H_canon)
-        return row, plane * N + k, query_H_anchor, model_px
+        return row, plane * N + k, query_H_anchor, model_px, inliers
 
     def _keep_better(self, pred: Prediction, verification: Verification,
-                     found: list[tuple[int, int, torch.Tensor, float]],
+                     found: list[tuple[int, int, torch.Tensor, float, int]],
                      framed: tuple[torch.Tensor, torch.Tensor | None, dict[int, int]],
-                     other_product: bool = False) -> tuple[Prediction, Verification]:
+                     other_product: bool = False, force: bool = False) -> tuple[Prediction, Verification]:
         """The keypoint poses ``found`` (refined when the recognizer refines) where their verification distance is
-        lower than the answer's (``other_product``: they are another product's, taken only where they verify);
-        ``framed``: the model-size queries, their visibility (or None) and each row's position in them."""
+        lower than the answer's (``other_product``: they are another product's, taken only where they verify;
+        ``force``: taken in any case, the keypoint match having decided); ``framed``: the model-size queries,
+        their visibility (or None) and each row's position in them."""
         rows = [f[0] for f in found]
         index = torch.tensor([f[1] for f in found])
         start = torch.stack([f[2] for f in found])
@@ -262,8 +289,8 @@ class KeypointPoses:
             closer = (refined_distance < distance)[:, None, None]
             query_H_anchor = torch.where(closer, refined, start)
             distance = torch.minimum(refined_distance, distance)
-        better = [j for j, i in enumerate(rows) if float(distance[j]) < float(verification.distance[i])
-                  and (not other_product or float(distance[j]) <= self.verify_max)]
+        better = [j for j, i in enumerate(rows) if force or (float(distance[j]) < float(verification.distance[i])
+                  and (not other_product or float(distance[j]) <= self.verify_max))]
         if not better:
             return pred, verification
         take, g, new_H = [rows[j] for j in better], index[better], query_H_anchor[better]

@@ -114,7 +114,8 @@ def test_match_finds_the_plane_and_its_pose_in_model_pixels() -> None:
 
 @pytest.mark.parametrize(("key", "value", "named"), [
     ("mode", "sometimes", "keypoint_pose='sometimes'"), ("size", 8, "size=8"), ("min_inliers", 3, "min_inliers=3"),
-    ("ratio", 1.5, "ratio=1.5"), ("reproj_threshold", 0.0, "reproj_threshold=0.0"), ("method", "lmeds", "method")])
+    ("ratio", 1.5, "ratio=1.5"), ("reproj_threshold", 0.0, "reproj_threshold=0.0"), ("method", "lmeds", "method"),
+    ("switch_margin", -1, "switch_margin=-1")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named):
         KeypointPose(**{key: value})
@@ -134,3 +135,17 @@ def test_the_next_nearest_product_is_taken_only_where_its_pose_verifies(tmp_path
     strict = wrong_pose_recognizer(keypoint_pose="unverified", threshold=0.0).enrol(tmp_path, cache=False)
     answer = strict.predict(query)
     assert answer.nearest_object == "red_box" and answer.verification <= 0.1 and not answer.known
+
+
+def test_an_answer_verified_nowhere_goes_to_the_product_whose_keypoints_match_clearly_most(tmp_path: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    write_png(tmp_path / "red_box" / "front.png", print_like(0, (0.8, 0.2, 0.1)))
+    write_png(tmp_path / "decoy" / "front.png", np.broadcast_to(query.mean((0, 1)), (*GALLERY_HW, 3)).copy())
+    # verify_max=1e-9: no pose verifies, so only the keypoint inliers can move the answer off the nearest product
+    answers = {margin: wrong_pose_recognizer(keypoint_pose=KeypointPose(mode="unverified", switch_margin=margin),
+                                             verify_max=1e-9).enrol(tmp_path, cache=False).predict(query)
+               for margin in (None, 3, 10_000)}
+    assert answers[None].nearest_object == "decoy" and answers[10_000].nearest_object == "decoy"
+    switched = answers[3]
+    assert switched.nearest_object == "red_box" and error_px(switched.H) < 3.0
+    assert not switched.verification <= 1e-9  # still unverified: the open set judges it by its statistic
