@@ -13,8 +13,11 @@ photos no training catalog uses, a share of the products in look-alike families)
    truth of the enrolled products' queries in ``truth.jsonl`` (with ``family``: the look-alike family when one
    of its other members is enrolled too), every query's in ``truth_all.jsonl``.
 3. *Methods* (``catalog.methods``): predict's code on the files (:class:`~matl.evaluation.unseen_methods.MethodRun`),
-   MATL with the open set on (``threshold``, default calibrated on the gallery); keypoint baselines answer a
-   closed set and are predicted up to ``catalog.keypoint_max_products`` (their ``query_ms`` at every size).
+   MATL with the open set on (``threshold``; ``auto``: calibrated on the gallery up to
+   ``catalog.calibrate_max_products`` products, a larger gallery takes the threshold of the largest one
+   calibrated: the calibration poses and verifies 8 warped copies of every plane, which at 10,000 products
+   takes tens of minutes and about 10 GB); keypoint baselines answer a closed set and are predicted up to
+   ``catalog.keypoint_max_products`` (their ``query_ms`` at every size).
 4. *Scores*: ``rec_acc`` (enrolled queries answered with the right product, as predict answers them),
    ``lookalike_rec_acc`` (the same over queries of products with an enrolled look-alike), ``unknown_rejected``
    (left-out products' queries answered unknown), ``refine_pose_acc_5px`` (matl_refine's poses within 5 px),
@@ -90,10 +93,15 @@ def check_catalog(cfg: DictConfig) -> list[int]:
         shown = OmegaConf.to_container(node.methods) if isinstance(node.methods, ListConfig) else node.methods
         raise MatlError(f"catalog.methods={shown} is invalid: use a list of {', '.join(METHODS)} with matl or "
                         "matl_refine in it, e.g. [matl_refine, sift]")
-    for key, low in (("keypoint_max_products", 0), ("timing_queries", 0), ("seed", 0), ("texture_px", 32)):
+    for key, low in (("calibrate_max_products", 2), ("keypoint_max_products", 0), ("timing_queries", 0), ("seed", 0),
+                     ("texture_px", 32)):
         value = node.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise MatlError(f"catalog.{key}={value} is invalid: use an integer >= {low}")
+    if cfg.get("threshold", "auto") == "auto" and min(sizes) > int(node.calibrate_max_products):
+        raise MatlError(f"catalog_sizes={sizes} with threshold=auto: the open-set threshold is calibrated on a gallery "
+                        f"of at most catalog.calibrate_max_products={node.get('calibrate_max_products')} products; "
+                        "add such a size to catalog_sizes (e.g. 2000) or give threshold=<value>")
     return sizes
 
 
@@ -181,13 +189,13 @@ def score_method(run: MethodRun, truth: list[dict[str, Any]], out: Path, image_s
 
 
 def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], n: int, ckpt_path: Path,
-             image_size: int, out: Path) -> dict[str, Any]:
-    """Write, predict, score and time the gallery of the first ``n`` products; returns its row of catalog.json."""
+             image_size: int, out: Path, threshold: float | str) -> dict[str, Any]:
+    """Write, predict, score and time the gallery of the first ``n`` products with MATL's open-set ``threshold``
+    (``auto``: calibrated on this gallery); returns its row of catalog.json."""
     node = cfg.catalog
     started = time.perf_counter()
     truth, left_out = write_size(cfg, cs, products, n, out)
     written_s = time.perf_counter() - started
-    threshold = cfg.get("threshold", "auto")
     shared = shared_options(cfg, ckpt_path, out, threshold, 1.0, float(cfg.query_fill))
     methods = [str(m) for m in node.methods]
     runs = {m: MethodRun.of(m, cfg, shared, out / f"predictions_{m}.jsonl") for m in methods}
@@ -211,8 +219,9 @@ def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], 
         if method in MATL_METHODS or n <= int(node.keypoint_max_products):
             log.info("catalog: %d products: predicting %d queries with %s", n, len(truth), method)
             started = time.perf_counter()
-            run.run()  # predict's library function on the files (its gallery features: the cache written above)
+            summary = run.run()  # predict's library function on the files (its gallery features: the cache above)
             entry["predict_s"] = time.perf_counter() - started
+            entry["threshold"] = summary.get("threshold")
             entry.update(score_method(run, truth, out, image_size))
         else:
             entry["skipped"] = f"gallery of {n} > catalog.keypoint_max_products={int(node.keypoint_max_products)}"
@@ -223,6 +232,7 @@ def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], 
            "unknown_rejected": main["unknown_rejected"],
            "refine_pose_acc_5px": per_method["matl_refine"]["pose_acc_5px"] if "matl_refine" in per_method else None,
            "query_ms": main.get("query_ms"), "method": primary, "rec_acc_closed": main["rec_acc_closed"],
+           "threshold": main.get("threshold"), "threshold_option": threshold,
            "enrol_s": main.get("enrol_s"), "left_out_products": len(left_out),
            "lookalike_products": sum(p.family is not None for p in products[:n]),
            "queries": len(enrolled), "lookalike_queries": main["lookalike_queries"],
@@ -305,7 +315,13 @@ def run_catalog(cfg: DictConfig, ckpt_path: Path, image_size: int, out: Path) ->
     products = catalog.products()
     cs = load_lookalikes(catalog, file_size, cfg.paths.cache_dir)
     log.info("catalog: %d products (%d planes) in %.1f s", cs.num_objects, cs.num_planes, time.perf_counter() - started)
-    rows = [run_size(cfg, cs, products, n, ckpt_path, image_size, out / f"n{n}") for n in sizes]
+    rows, calibrated = [], None
+    for n in sizes:  # a gallery above calibrate_max_products takes the threshold of the largest one calibrated
+        auto = cfg.get("threshold", "auto") == "auto"
+        threshold = calibrated if auto and n > int(cfg.catalog.calibrate_max_products) else cfg.get("threshold", "auto")
+        rows.append(run_size(cfg, cs, products, n, ckpt_path, image_size, out / f"n{n}", threshold))
+        if auto and n <= int(cfg.catalog.calibrate_max_products):
+            calibrated = rows[-1]["threshold"]
     command = own_command()
     node = OmegaConf.to_container(cfg.catalog, resolve=True)
     title = (f"catalogue of held-out products ({node['lookalike_share']:.0%} in look-alike families), "

@@ -34,6 +34,8 @@ def test_the_default_options_are_valid(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path, "catalog_sizes=[2000,20,200]")
     assert check_catalog(cfg) == [20, 200, 2000] and _check(cfg)[0] == ["catalog"]
     assert check_catalog(_cfg(tmp_path)) == [20, 200, 2000, 10000]
+    # a gallery too large to calibrate on is measured at a given threshold
+    assert check_catalog(_cfg(tmp_path, "catalog_sizes=[10000]", "threshold=0.5")) == [10000]
 
 
 @pytest.mark.parametrize("override,match", [
@@ -52,6 +54,8 @@ def test_the_default_options_are_valid(tmp_path: Path) -> None:
     ("catalog.lookalike_share=1.0", "catalog.lookalike_share=1.0 is invalid"),
     ("catalog.keypoint_max_products=-1", "catalog.keypoint_max_products=-1 is invalid"),
     ("catalog.texture_px=8", "catalog.texture_px=8 is invalid"),
+    ("catalog_sizes=[5000,10000]", "with threshold=auto: the open-set threshold is calibrated on a gallery of at most"),
+    ("catalog.calibrate_max_products=1", "catalog.calibrate_max_products=1 is invalid"),
 ])
 def test_bad_catalog_options_are_one_line_errors(tmp_path: Path, override: str, match: str) -> None:
     with pytest.raises(MatlError, match=match.replace("[", r"\[").replace("]", r"\]")) as error:
@@ -158,6 +162,7 @@ def test_catalog_end_to_end(tmp_path: Path, cache_dir: Path) -> None:
     cfg = compose_config("unseen", ["ckpt=pretrained", "condition=catalog", "catalog_sizes=[6,3]", "queries=10",
                                     "catalog.methods=[matl,sift]", "catalog.keypoint_max_products=3",
                                     "catalog.timing_queries=1", "timing.warmup=1", "catalog.leave_out=0.5",
+                                    "catalog.calibrate_max_products=3",
                                     f"out={out}", f"paths.cache_dir={cache_dir}"], tmp_path / "run")
     data = unseen(cfg)
     saved = json.loads((out / "catalog.json").read_text())
@@ -172,6 +177,8 @@ def test_catalog_end_to_end(tmp_path: Path, cache_dir: Path) -> None:
         assert len([d for d in (folder / "gallery").iterdir() if d.is_dir()]) == row["products"]
         assert len(list((folder / "left_out").iterdir())) == row["left_out_products"] == round(0.5 * row["products"])
     small, large = saved["rows"]
+    # the larger gallery was not calibrated on: it took the smaller one's threshold
+    assert small["threshold_option"] == "auto" and large["threshold_option"] == small["threshold"] is not None
     assert "rec_acc" in small["methods"]["sift"] and "skipped" in large["methods"]["sift"]
     assert (out / "catalog.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| 6 |" in (out / "catalog.md").read_text()
