@@ -13,11 +13,12 @@ photos no training catalog uses, a share of the products in look-alike families)
    truth of the enrolled products' queries in ``truth.jsonl`` (with ``family``: the look-alike family when one
    of its other members is enrolled too), every query's in ``truth_all.jsonl``.
 3. *Methods* (``catalog.methods``): predict's code on the files (:class:`~matl.evaluation.unseen_methods.MethodRun`),
-   MATL with the open set on (``threshold``; ``auto``: calibrated on the gallery up to
-   ``catalog.calibrate_max_products`` products, a larger gallery takes the threshold of the largest one
-   calibrated: the calibration poses and verifies 8 warped copies of every plane, which at 10,000 products
-   takes tens of minutes and about 10 GB); keypoint baselines answer a closed set and are predicted up to
-   ``catalog.keypoint_max_products`` (their ``query_ms`` at every size).
+   MATL with the open set on (``threshold``, ``auto``: calibrated on the gallery) up to
+   ``catalog.calibrate_max_products`` products and a closed set above (the open set needs the gallery's
+   calibration, a given threshold too for its answers' scores; it poses and verifies 8 warped copies of every
+   plane, all at once: at 10,000 products tens of minutes and more memory than 23 GB); keypoint baselines
+   answer a closed set and are predicted up to ``catalog.keypoint_max_products`` (their ``query_ms`` at every
+   size).
 4. *Scores*: ``rec_acc`` (enrolled queries answered with the right product, as predict answers them),
    ``lookalike_rec_acc`` (the same over queries of products with an enrolled look-alike), ``unknown_rejected``
    (left-out products' queries answered unknown), ``refine_pose_acc_5px`` (matl_refine's poses within 5 px),
@@ -98,10 +99,6 @@ def check_catalog(cfg: DictConfig) -> list[int]:
         value = node.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise MatlError(f"catalog.{key}={value} is invalid: use an integer >= {low}")
-    if cfg.get("threshold", "auto") == "auto" and min(sizes) > int(node.calibrate_max_products):
-        raise MatlError(f"catalog_sizes={sizes} with threshold=auto: the open-set threshold is calibrated on a gallery "
-                        f"of at most catalog.calibrate_max_products={node.get('calibrate_max_products')} products; "
-                        "add such a size to catalog_sizes (e.g. 2000) or give threshold=<value>")
     return sizes
 
 
@@ -189,9 +186,10 @@ def score_method(run: MethodRun, truth: list[dict[str, Any]], out: Path, image_s
 
 
 def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], n: int, ckpt_path: Path,
-             image_size: int, out: Path, threshold: float | str) -> dict[str, Any]:
+             image_size: int, out: Path, threshold: float | str | None) -> dict[str, Any]:
     """Write, predict, score and time the gallery of the first ``n`` products with MATL's open-set ``threshold``
-    (``auto``: calibrated on this gallery); returns its row of catalog.json."""
+    (``auto``: calibrated on this gallery; None: the closed set, ``unknown_rejected`` None); returns its row of
+    catalog.json."""
     node = cfg.catalog
     started = time.perf_counter()
     truth, left_out = write_size(cfg, cs, products, n, out)
@@ -229,7 +227,7 @@ def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], 
     main = per_method[primary]
     enrolled = [t for t in truth if t["enrolled"]]
     row = {"products": n, "rec_acc": main["rec_acc"], "lookalike_rec_acc": main["lookalike_rec_acc"],
-           "unknown_rejected": main["unknown_rejected"],
+           "unknown_rejected": main["unknown_rejected"] if threshold is not None else None,
            "refine_pose_acc_5px": per_method["matl_refine"]["pose_acc_5px"] if "matl_refine" in per_method else None,
            "query_ms": main.get("query_ms"), "method": primary, "rec_acc_closed": main["rec_acc_closed"],
            "threshold": main.get("threshold"), "threshold_option": threshold,
@@ -301,8 +299,8 @@ def catalog_table(rows: list[dict[str, Any]], command: str) -> str:
 
 
 def run_catalog(cfg: DictConfig, ckpt_path: Path, image_size: int, out: Path) -> dict[str, Any]:
-    """Every size of ``catalog_sizes`` into ``<out>/n<size>/``; writes ``<out>/catalog.json``, ``catalog.md`` and
-    ``catalog.png``; returns catalog.json's content."""
+    """Every size of ``catalog_sizes`` into ``<out>/n<size>/``; writes ``<out>/catalog.json`` (after each size, the
+    rows so far with ``complete`` false), ``catalog.md`` and ``catalog.png``; returns catalog.json's content."""
     from matl.utils.io import write_json
 
     sizes = check_catalog(cfg)
@@ -315,13 +313,12 @@ def run_catalog(cfg: DictConfig, ckpt_path: Path, image_size: int, out: Path) ->
     products = catalog.products()
     cs = load_lookalikes(catalog, file_size, cfg.paths.cache_dir)
     log.info("catalog: %d products (%d planes) in %.1f s", cs.num_objects, cs.num_planes, time.perf_counter() - started)
-    rows, calibrated = [], None
-    for n in sizes:  # a gallery above calibrate_max_products takes the threshold of the largest one calibrated
-        auto = cfg.get("threshold", "auto") == "auto"
-        threshold = calibrated if auto and n > int(cfg.catalog.calibrate_max_products) else cfg.get("threshold", "auto")
+    rows: list[dict[str, Any]] = []
+    limit = int(cfg.catalog.calibrate_max_products)
+    for n in sizes:  # above calibrate_max_products: the closed set (the open set needs the gallery's calibration)
+        threshold = cfg.get("threshold", "auto") if n <= limit else None
         rows.append(run_size(cfg, cs, products, n, ckpt_path, image_size, out / f"n{n}", threshold))
-        if auto and n <= int(cfg.catalog.calibrate_max_products):
-            calibrated = rows[-1]["threshold"]
+        write_json(out / "catalog.json", {"command": own_command(), "rows": rows, "complete": False})  # so far
     command = own_command()
     node = OmegaConf.to_container(cfg.catalog, resolve=True)
     title = (f"catalogue of held-out products ({node['lookalike_share']:.0%} in look-alike families), "
@@ -335,7 +332,7 @@ def run_catalog(cfg: DictConfig, ckpt_path: Path, image_size: int, out: Path) ->
             "timing": {"queries": int(cfg.catalog.timing_queries), "warmup": int(cfg.timing.warmup),
                        "threads": int(cfg.timing.threads),
                        "statistic": "median over single-query calls (batch of 1), gallery in memory, file decoded"},
-            "files": {"table": "catalog.md", "figure": plot.name}}
+            "files": {"table": "catalog.md", "figure": plot.name}, "complete": True}
     write_json(out / "catalog.json", data)
     (out / "catalog.md").write_text(catalog_table(rows, command))
     log.info("catalog: -> %s\n%s", out / "catalog.json", catalog_table(rows, command))

@@ -34,8 +34,7 @@ def test_the_default_options_are_valid(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path, "catalog_sizes=[2000,20,200]")
     assert check_catalog(cfg) == [20, 200, 2000] and _check(cfg)[0] == ["catalog"]
     assert check_catalog(_cfg(tmp_path)) == [20, 200, 2000, 10000]
-    # a gallery too large to calibrate on is measured at a given threshold
-    assert check_catalog(_cfg(tmp_path, "catalog_sizes=[10000]", "threshold=0.5")) == [10000]
+    assert check_catalog(_cfg(tmp_path, "catalog_sizes=[10000]")) == [10000]
 
 
 @pytest.mark.parametrize("override,match", [
@@ -54,7 +53,6 @@ def test_the_default_options_are_valid(tmp_path: Path) -> None:
     ("catalog.lookalike_share=1.0", "catalog.lookalike_share=1.0 is invalid"),
     ("catalog.keypoint_max_products=-1", "catalog.keypoint_max_products=-1 is invalid"),
     ("catalog.texture_px=8", "catalog.texture_px=8 is invalid"),
-    ("catalog_sizes=[5000,10000]", "with threshold=auto: the open-set threshold is calibrated on a gallery of at most"),
     ("catalog.calibrate_max_products=1", "catalog.calibrate_max_products=1 is invalid"),
 ])
 def test_bad_catalog_options_are_one_line_errors(tmp_path: Path, override: str, match: str) -> None:
@@ -169,16 +167,17 @@ def test_catalog_end_to_end(tmp_path: Path, cache_dir: Path) -> None:
     assert saved["rows"] == json.loads(json.dumps(data["rows"])) and [r["products"] for r in saved["rows"]] == [3, 6]
     for row in saved["rows"]:
         assert set(ROW_KEYS) <= set(row) and row["refine_pose_acc_5px"] is None  # matl_refine did not run
-        for key in ("rec_acc", "unknown_rejected"):
-            assert 0.0 <= row[key] <= 1.0
+        assert 0.0 <= row["rec_acc"] <= row["rec_acc_closed"] <= 1.0
         assert row["query_ms"] > 0 and row["enrol_s"] > 0 and row["methods"]["sift"]["query_ms"] > 0
         assert row["queries"] + row["left_out_queries"] == 10
         folder = out / row["folder"]
         assert len([d for d in (folder / "gallery").iterdir() if d.is_dir()]) == row["products"]
         assert len(list((folder / "left_out").iterdir())) == row["left_out_products"] == round(0.5 * row["products"])
     small, large = saved["rows"]
-    # the larger gallery was not calibrated on: it took the smaller one's threshold
-    assert small["threshold_option"] == "auto" and large["threshold_option"] == small["threshold"] is not None
+    # above calibrate_max_products the closed set: no calibration, nothing answered unknown
+    assert small["threshold_option"] == "auto" and small["threshold"] is not None
+    assert 0.0 <= small["unknown_rejected"] <= 1.0
+    assert large["threshold_option"] is None and large["unknown_rejected"] is None
     assert "rec_acc" in small["methods"]["sift"] and "skipped" in large["methods"]["sift"]
     assert (out / "catalog.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| 6 |" in (out / "catalog.md").read_text()
