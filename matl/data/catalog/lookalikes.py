@@ -191,19 +191,21 @@ class LookalikeCatalog:
         family = slug(f"{brand.name} {first.title} {unit}")
         members = [CatalogProduct(first, family)]
         changes = [CHANGES[int(i) % len(CHANGES)] for i in rng.permutation(max(size - 1, len(CHANGES)))][: size - 1]
+        used = {"flavour": {flavour}, "colour": {variant}, "size": {pack}, "redesign": set()}  # no two twins alike
         for change in changes:
             if change == "flavour":
-                other = str(rng.choice([f for f in FLAVOURS if f != flavour]))
+                other = str(rng.choice([f for f in FLAVOURS if f not in used[change]]))
                 members.append(CatalogProduct(spec(other, variant, pack), family, change))
             elif change == "colour":
-                other = str(rng.choice([v for v in VARIANTS if v != variant]))
+                other = str(rng.choice([v for v in VARIANTS if v not in used[change]]))
                 members.append(CatalogProduct(spec(flavour, other, pack), family, change))
             elif change == "size":
-                choices = [s for s in (*sizes, *SIZES[kind.shape]) if s != pack]
-                members.append(CatalogProduct(spec(flavour, variant, str(rng.choice(choices))), family, change))
+                other = str(rng.choice([s for s in (*sizes, *SIZES[kind.shape]) if s not in used[change]]))
+                members.append(CatalogProduct(spec(flavour, variant, other), family, change))
             else:
-                badge = str(rng.choice(BADGES))
-                members.append(CatalogProduct(spec(flavour, variant, pack, badge), family, change, badge))
+                other = str(rng.choice([b for b in BADGES if b not in used[change]]))
+                members.append(CatalogProduct(spec(flavour, variant, pack, other), family, change, other))
+            used[change].add(other)
         return members
 
     # ------------------------------------------------------------------------------------ images

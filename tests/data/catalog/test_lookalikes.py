@@ -102,3 +102,15 @@ def test_chunks_are_cached_and_a_larger_catalogue_reuses_them(tmp_path: Path, mo
 def test_options_the_generator_cannot_make_are_refused(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         LookalikeCatalog(**{"num_products": 10, **kwargs})
+
+
+def test_no_two_members_of_a_large_family_are_alike() -> None:
+    """Families larger than the four kinds of change repeat a kind, never a value: no two twins print alike."""
+    families: dict[str, list] = {}
+    for p in LookalikeCatalog(600, family_size=(8, 12)).products():
+        if p.family is not None:
+            families.setdefault(p.family, []).append(p)
+    assert families and max(len(m) for m in families.values()) >= 8
+    for members in families.values():
+        looks = [(m.spec.title, m.spec.variant, m.spec.subtitle, m.badge) for m in members]
+        assert len(set(looks)) == len(looks)
