@@ -1,5 +1,9 @@
 """``python -m matl.unseen ckpt=<path> [condition=clean|photometric|mask|clutter|view|sizes|all] [data=heldout]``.
 
+``condition=catalog`` (alone) is the catalogue benchmark instead: galleries of ``catalog_sizes`` held-out
+products, a quarter in look-alike families, against gallery size (:mod:`matl.evaluation.catalog`,
+docs/catalog.md); it writes ``<out>/catalog.json``, ``catalog.md`` and ``catalog.png``.
+
 The benchmark of products the checkpoint never saw in training, measured through the user-facing
 path, ``matl.predict`` with a gallery enrolled from image files (paper Sec. 2.1):
 

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from matl.data.canonical import load_canonical, require_models
 from matl.data.occluders import Occluders
+from matl.evaluation.catalog import check_catalog, run_catalog
 from matl.evaluation.condition_writers import WRITERS, Queries, write_gallery
 from matl.evaluation.conditions import CONDITIONS, sample_poses
 from matl.evaluation.open_set import open_set_summary, plot_open_set
@@ -178,7 +179,14 @@ def _check(cfg: DictConfig) -> tuple[list[str], list[str]]:
     if cfg.get("ckpt") in (None, ""):
         raise MatlError("ckpt=... is required: python -m matl.unseen ckpt=<checkpoint> [condition=all] "
                         "[data=heldout] [out=<dir>]")
-    conditions = _names(cfg.get("condition"), CONDITIONS, "condition", allow_all=True)
+    condition = cfg.get("condition")
+    items = list(condition) if isinstance(condition, (list, tuple, ListConfig)) else [condition]
+    if "catalog" in items and items != ["catalog"]:
+        raise MatlError("condition=catalog runs alone (its own products and galleries): python -m matl.unseen "
+                        "condition=catalog ckpt=... 'catalog_sizes=[20,200,2000]'")
+    conditions = ["catalog"] if items == ["catalog"] else _names(condition, CONDITIONS, "condition",
+                                                                  allow_all=True)
+    check_catalog(cfg)
     methods = _names(cfg.get("methods"), METHODS, "methods", allow_all=False)
     for key, low in (("queries", 1), ("query_seed", 0), ("file_size", 16), ("sizes.gallery", 16), ("sizes.query", 16),
                      ("timing.queries", 0), ("timing.warmup", 0), ("timing.threads", 1), ("view.seed", 0)):
@@ -395,6 +403,11 @@ def unseen(cfg: DictConfig) -> dict[str, Any]:
     train_data = (ckpt.get("matl_config") or {}).get("data") or {}
     del ckpt
     out = Path(cfg.out).expanduser().resolve()
+    if conditions == ["catalog"]:
+        for method in cfg.catalog.methods:  # predict's options, the model, a matcher: before any file is written
+            MethodRun.of(str(method), cfg, shared_options(cfg, ckpt_path, out, cfg.get("threshold", "auto"), 1.0,
+                                                          float(cfg.query_fill)), out / "predictions.jsonl").check()
+        return run_catalog(cfg, ckpt_path, size, out)
     # one condition by name: its files straight into out/; all or a list: out/<condition>/ each
     flat = isinstance(cfg.condition, str) and cfg.condition != "all"
     folders = {c: out if flat else out / c for c in conditions}

@@ -312,8 +312,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if not self._planes:
             raise MatlError("the gallery is empty: enrol(folder) or add(object, plane, image) first")
         objects = self.objects
+        index = {name: i for i, name in enumerate(objects)}
         gallery = build_gallery(torch.stack([p.canon_u8 for p in self._planes]),
-                                [objects.index(p.object) for p in self._planes], [p.name for p in self._planes],
+                                [index[p.object] for p in self._planes], [p.name for p in self._planes],
                                 objects, self.num_anchors).to(self.device)
         features = torch.cat([p.features for p in self._planes]).to(self.device)
         model = self.model
@@ -347,7 +348,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         """``(Q, O)`` distance of each feature to the nearest anchor of every product, and the products."""
         objects = self.objects
         by_plane = self._plane_distances(features)
-        owner = torch.tensor([objects.index(p.object) for p in self._planes])
+        index = {name: i for i, name in enumerate(objects)}  # a dict: list.index per plane is quadratic in the gallery
+        owner = torch.tensor([index[p.object] for p in self._planes])
         out = torch.full((len(features), len(objects)), float("inf"), dtype=torch.float64)
         return out.scatter_reduce(1, owner.expand(len(features), -1), by_plane, reduce="amin"), objects
     # ----------------------------------------------------------------------------- grey queries

@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 CACHE_FORMAT = 1  # bump when the cache's content or meaning changes: old files then miss the key
 CACHE_PREFIX = ".matl_gallery_"
+BUILD_PLANES = 256  # planes warped into anchors at a time (build_gallery)
 
 
 # ---------------------------------------------------------------------------------------- gallery
@@ -131,8 +132,13 @@ def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: 
     size = int(canon_u8.shape[-1])
     H = anchor_H_canon(N, (size, size), torch.float64)                    # (N, 3, 3)
     flat_H = H.repeat(P, 1, 1)                                             # (P*N, 3, 3)
-    canon = canon_u8.float().div(255.0).repeat_interleave(N, dim=0)
-    images = warp_image(canon, flat_H) if P else canon
+    if P:  # warped BUILD_PLANES planes at a time: the peak stays near the anchors' own (P*N, 3, S, S) floats
+        images = torch.empty((P * N, *canon_u8.shape[1:]), dtype=torch.float32)
+        for start in range(0, P, BUILD_PLANES):
+            canon = canon_u8[start:start + BUILD_PLANES].float().div(255.0).repeat_interleave(N, dim=0)
+            images[start * N:start * N + len(canon)] = warp_image(canon, flat_H[start * N:start * N + len(canon)])
+    else:
+        images = canon_u8.float().div(255.0).repeat_interleave(N, dim=0)
     obj = torch.tensor(plane_object, dtype=torch.long)
     return Gallery(images=images, object_index=obj.repeat_interleave(N),
                    plane_index=torch.arange(P).repeat_interleave(N), anchor_index=torch.arange(N).repeat(P),

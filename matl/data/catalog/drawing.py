@@ -61,6 +61,9 @@ HELDOUT_PHOTO_FILES: dict[str, str] = {
     "coffee": "coffee.png",
     "rocket": "rocket.jpg",
 }
+# The catalogue benchmark's products (matl.data.catalog.lookalikes) print these and two more colour photos of the
+# same package (both "no known copyright restrictions" / CC0 by their sources), never trained on either.
+CATALOG_PHOTO_FILES: dict[str, str] = {**HELDOUT_PHOTO_FILES, "ihc": "ihc.png", "retina": "retina.jpg"}
 # ... and other photos of the same package, only ever used as the real backgrounds of benchmark queries.
 HELDOUT_BACKGROUND_FILES: dict[str, str] = {
     "brick": "brick.png",
@@ -83,8 +86,9 @@ def heldout_photo_dir() -> Path:
 
 
 def heldout_image(name: str) -> Image.Image:
-    """One of :data:`HELDOUT_PHOTO_FILES` or :data:`HELDOUT_BACKGROUND_FILES` as RGB (grey files repeated)."""
-    files = {**HELDOUT_PHOTO_FILES, **HELDOUT_BACKGROUND_FILES}
+    """One of :data:`CATALOG_PHOTO_FILES` (:data:`HELDOUT_PHOTO_FILES` and two more) or
+    :data:`HELDOUT_BACKGROUND_FILES` as RGB (grey files repeated)."""
+    files = {**CATALOG_PHOTO_FILES, **HELDOUT_BACKGROUND_FILES}
     if name not in files:
         raise MatlError(f"unknown held-out photo {name!r}; valid: {', '.join(sorted(files))}")
     path = heldout_photo_dir() / files[name]
@@ -112,7 +116,7 @@ def font(key: str, size: int) -> ImageFont.FreeTypeFont:
 def photo(key: str) -> Image.Image:
     """One of :data:`PHOTO_FILES` (or, for the held-out catalogs, :data:`HELDOUT_PHOTO_FILES`) as RGBA
     (transparent where the file has alpha)."""
-    if key not in PHOTO_FILES and key in HELDOUT_PHOTO_FILES:
+    if key not in PHOTO_FILES and key in CATALOG_PHOTO_FILES:
         return heldout_image(key).convert("RGBA")
     with Image.open(PHOTO_DIR / PHOTO_FILES[key]) as im:
         return im.convert("RGBA")
