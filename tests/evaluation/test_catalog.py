@@ -33,7 +33,7 @@ def _cfg(tmp_path: Path, *overrides: str):
 def test_the_default_options_are_valid(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path, "catalog_sizes=[2000,20,200]")
     assert check_catalog(cfg) == [20, 200, 2000] and _check(cfg)[0] == ["catalog"]
-    assert check_catalog(_cfg(tmp_path)) == [20, 200, 2000, 10000]
+    assert check_catalog(_cfg(tmp_path)) == [20, 200, 2000]
     assert check_catalog(_cfg(tmp_path, "catalog_sizes=[10000]")) == [10000]
 
 
