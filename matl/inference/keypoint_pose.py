@@ -19,7 +19,7 @@ import dataclasses
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -175,6 +175,16 @@ def _smallest_rotation(query_H_canon: torch.Tensor, anchor_H_canon: torch.Tensor
     return k, poses[k]
 
 
+class _Candidate(NamedTuple):
+    """A keypoint pose of one query row against one product's planes."""
+
+    row: int                      # the query's row in the prediction
+    gallery_index: int            # the anchor (plane * N + k) whose frame the pose is in
+    query_H_anchor: torch.Tensor  # (3, 3) float64, model frame
+    model_px: float               # model px per file px of the query
+    inliers: int                  # RANSAC inliers of the plane matched
+
+
 class KeypointPoses:
     """The keypoint side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its planes, gallery,
     refiner, verification options and ``keypoint_pose`` settings."""
@@ -217,7 +227,7 @@ class KeypointPoses:
         framed = (queries.to(self.device), _query_visibility(sub, self.image_size, self.query_fill, self.device),
                   {i: j for j, i in enumerate(rows)})
         features: dict[int, ImageFeatures] = {}
-        tried: dict[int, list[tuple[int, int, torch.Tensor, float, int] | None]] = {i: [] for i in rows}
+        tried: dict[int, list[_Candidate | None]] = {i: [] for i in rows}
         for rank in range(settings.products):
             todo = [i for i in rows if rank < len(ranked[i]) and (rank == 0 or not bool(verification.verified[i]))]
             found = []
@@ -234,9 +244,9 @@ class KeypointPoses:
             for i in rows:
                 if bool(verification.verified[i]) or len(tried[i]) < 2:
                     continue
-                answered = tried[i][0][4] if tried[i][0] is not None else 0
-                best = max((c for c in tried[i][1:] if c is not None), key=lambda c: c[4], default=None)
-                if best is not None and best[4] >= answered + settings.switch_margin:
+                answered = tried[i][0].inliers if tried[i][0] is not None else 0
+                best = max((c for c in tried[i][1:] if c is not None), key=lambda c: c.inliers, default=None)
+                if best is not None and best.inliers >= answered + settings.switch_margin:
                     switch.append(best)
             if switch:
                 pred, verification = self._keep_better(pred, verification, switch, framed, True, force=True)
@@ -244,10 +254,9 @@ class KeypointPoses:
 
     def _keypoint_candidate(self, prepared: tuple[np.ndarray, np.ndarray, np.ndarray | None],
                             model_H_file: torch.Tensor, row: int, planes: list[int],
-                            features: dict[int, ImageFeatures]) -> tuple[int, int, torch.Tensor, float, int] | None:
-        """Query ``row``'s keypoint pose against the enrolled planes ``planes`` (one product's): ``(row, gallery
-        index, model-frame query_H_anchor (3, 3) float64, model px per file px, inliers)`` of the plane with most
-        inliers, or None (``features``: each row's query features, computed at the first need)."""
+                            features: dict[int, ImageFeatures]) -> _Candidate | None:
+        """Query ``row``'s keypoint pose against the enrolled planes ``planes`` (one product's), that of the plane
+        with most inliers, or None (``features``: each row's query features, computed at the first need)."""
         settings: KeypointPose = self.keypoint_pose
         masked, rgb, alpha = prepared
         model_H_file = model_H_file.double()
@@ -264,25 +273,25 @@ class KeypointPoses:
         query_H_canon = model_H_file @ torch.from_numpy(file_H_canon)
         anchor_H_canon = self._build()[1].anchor_H_canon64()[plane * N:(plane + 1) * N]
         k, query_H_anchor = _smallest_rotation(query_H_canon, anchor_H_canon)
-        return row, plane * N + k, query_H_anchor, model_px, inliers
+        return _Candidate(row, plane * N + k, query_H_anchor, model_px, inliers)
 
     def _keep_better(self, pred: Prediction, verification: Verification,
-                     found: list[tuple[int, int, torch.Tensor, float, int]],
+                     found: list[_Candidate],
                      framed: tuple[torch.Tensor, torch.Tensor | None, dict[int, int]],
                      other_product: bool = False, force: bool = False) -> tuple[Prediction, Verification]:
         """The keypoint poses ``found`` (refined when the recognizer refines) where their verification distance is
         lower than the answer's (``other_product``: they are another product's, taken only where they verify;
         ``force``: taken in any case, the keypoint match having decided); ``framed``: the model-size queries,
         their visibility (or None) and each row's position in them."""
-        rows = [f[0] for f in found]
-        index = torch.tensor([f[1] for f in found])
-        start = torch.stack([f[2] for f in found])
+        rows = [f.row for f in found]
+        index = torch.tensor([f.gallery_index for f in found])
+        start = torch.stack([f.query_H_anchor for f in found])
         at = [framed[2][i] for i in rows]
         queries, visibility = framed[0][at], None if framed[1] is None else framed[1][at]
         query_H_anchor, distance = start, self._pose_check(queries, start, index, visibility)
         if self.refiner is not None or self.verify_refine:  # refined from there, kept where it verifies better
             refiner, templates = self._candidate_refiner()
-            upscale = torch.tensor([f[3] for f in found], dtype=torch.float64)
+            upscale = torch.tensor([f.model_px for f in found], dtype=torch.float64)
             refined = refiner(queries, index, start, templates, visibility=visibility,
                               upscale=upscale).query_H_anchor.double()
             refined_distance = self._pose_check(queries, refined, index, visibility)
