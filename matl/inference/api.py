@@ -84,6 +84,7 @@ from matl.inference.calibration import (
 )
 from matl.inference.enrolment import GALLERY_FORMAT, READABLE_GALLERY_FORMATS, Enrolment, _Plane
 from matl.inference.fast_refine import FastRefiner
+from matl.inference.flow_pose import FlowPose, FlowPoses
 from matl.inference.foreground import ForegroundStep, mask_query
 from matl.inference.gallery import build_gallery
 from matl.inference.images import FLOAT_SLACK, LUMA, MIN_GALLERY_SIDE, _as_rgb, _concat, _grey_u8, _is_grey, _rows
@@ -156,7 +157,7 @@ class Match:
 
 
 
-class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, KeypointPoses):
+class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, KeypointPoses, FlowPoses):
     """Recognition and pose of camera crops against an enrolled gallery; see the module docstring.
 
     Args:
@@ -204,6 +205,10 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             against its product's planes, then the next nearest products' (:mod:`matl.inference.keypoint_pose`), and
             takes that pose where it verifies better (another product only where it verifies); ``always``; ``none``;
             or a :class:`~matl.inference.keypoint_pose.KeypointPose` with its own settings.
+        flow_pose: ``unverified`` (default): an answer whose pose does not verify is warped into its anchor's frame,
+            matched to the anchor by dense optical flow, and takes the homography fitted to the flow of its visible
+            textured pixels where that verifies better (:mod:`matl.inference.flow_pose`); ``always``; ``none``; or a
+            :class:`~matl.inference.flow_pose.FlowPose` with its own settings.
         refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
             unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
             query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
@@ -240,6 +245,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.verify_occluded_copies = settings.verify_occluded_copies
         self.refine_check = settings.refine_check
         self.keypoint_pose: KeypointPose = settings.keypoint_pose
+        self.flow_pose: FlowPose = settings.flow_pose
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -419,6 +425,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
                 "keypoint_pose": self.keypoint_pose.options(),
+                "flow_pose": self.flow_pose.options(),
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,
@@ -428,9 +435,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
     def time_stages(self, timer: StageTimer | None) -> None:
         """Fill ``timer`` (:class:`matl.utils.timing.StageTimer`) with the milliseconds of each stage of the calls
         that follow: ``foreground``, ``framing`` (to the model frame), ``networks``, ``search``, ``alignment``,
-        ``refinement``, ``verification`` (the further candidates' networks and poses included), ``keypoints``
-        (``keypoint_pose``) and ``retries`` (``foreground.retry_insets``: everything a retried query runs again);
-        None stops it and leaves no cost.
+        ``refinement``, ``verification`` (the further candidates' networks and poses included),
+        ``keypoints`` (``keypoint_pose``), ``retries`` (``foreground.retry_insets``: everything a retried query runs
+        again) and ``flow`` (``flow_pose``); None stops it and leaves no cost.
         Time the stages after enrolling: a gallery changed afterwards is answered untimed inside the networks."""
         with self._lock:
             if self.stage_timer is not None:
@@ -485,14 +492,17 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         recognizer, _ = self._build()
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
-        pred, queries, query_H_file, verification = self._answer(recognizer, prepared)
+        pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
         if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
-                pred, queries, verification = self._foreground_retries(recognizer, prepared, pred, queries,
-                                                                       verification)
+                pred, queries, verification, visibility = self._foreground_retries(
+                    recognizer, prepared, pred, queries, verification, visibility)
+        if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
+            # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
+            pred, verification = self._flow_poses(queries, pred, verification, visibility)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None

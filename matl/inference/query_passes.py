@@ -28,10 +28,11 @@ class QueryPasses:
     of it, using its networks, verification and foreground step."""
 
     def _answer(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
-                ) -> tuple[Prediction, torch.Tensor, torch.Tensor, Verification | None]:
+                ) -> tuple[Prediction, torch.Tensor, torch.Tensor, Verification | None, torch.Tensor | None]:
         """The verified model-frame answer of queries prepared by :func:`mask_query`: the prediction (re-ranked
         by verification), the model-size queries ``(B, 3, S, S)`` of the last foreground pass, ``model_H_file``
-        ``(B, 3, 3)`` and the verification (None without one)."""
+        ``(B, 3, 3)``, the verification (None without one) and the queries' visibility ``(B, 1, S, S)`` (None: no
+        query has a mask)."""
         with stage(self.stage_timer, "framing"):
             fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
             queries = torch.stack([f[0] for f in fitted]).to(self.device)
@@ -46,16 +47,18 @@ class QueryPasses:
                 verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance),
                                             visibility=visibility, upscale=upscale)
                 pred = self._reranked(pred, verification)
-        return pred, queries, query_H_file, verification
+        return pred, queries, query_H_file, verification, visibility
 
     def _foreground_retries(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
-                            pred: Prediction, queries: torch.Tensor, verification: Verification
-                            ) -> tuple[Prediction, torch.Tensor, Verification]:
+                            pred: Prediction, queries: torch.Tensor, verification: Verification,
+                            visibility: torch.Tensor | None
+                            ) -> tuple[Prediction, torch.Tensor, Verification, torch.Tensor | None]:
         """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
         GrabCut from wider insets (:meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
         ``retry_thresholds``) and answered again; it keeps an answer that verifies over one that does not, then the
         one whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
-        keeps the crop's size)."""
+        keeps the crop's size). Returns the prediction, queries, verification and visibility with the retried rows'
+        answers taken where better."""
         retried: list[int] = []
         again: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         for i, (_, rgb, found) in enumerate(prepared):
@@ -67,8 +70,8 @@ class QueryPasses:
                 retried.append(i)
                 again.append((np.ascontiguousarray(rgb * mask[..., None]), rgb, mask))
         if not again:
-            return pred, queries, verification
-        alt_pred, alt_queries, _, alt_verification = self._answer(recognizer, again)
+            return pred, queries, verification, visibility
+        alt_pred, alt_queries, _, alt_verification, alt_visibility = self._answer(recognizer, again)
         # an answer that verifies first, then the lowest distance (an answer keypoint_pose took from another product
         # can be closer and still not count as verified)
         best = {i: (not bool(verification.verified[i]), float(verification.distance[i])) for i in set(retried)}
@@ -78,10 +81,12 @@ class QueryPasses:
             if candidate < best[i]:
                 best[i], take[i] = candidate, j
         if not take:
-            return pred, queries, verification
+            return pred, queries, verification, visibility
         rows, source = list(take), list(take.values())
+        if visibility is not None:  # a retry always has a mask
+            visibility = _with_rows(visibility, rows, alt_visibility, source)
         return (_with_rows(pred, rows, alt_pred, source), _with_rows(queries, rows, alt_queries, source),
-                _with_rows(verification, rows, alt_verification, source))
+                _with_rows(verification, rows, alt_verification, source), visibility)
 
     def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
                            found: list[np.ndarray | None], visibility: torch.Tensor | None = None,

@@ -17,6 +17,7 @@ from typing import Any
 import torch
 
 from matl.inference.fast_refine import FastRefiner
+from matl.inference.flow_pose import FlowPose
 from matl.inference.foreground import ForegroundStep, foreground_option
 from matl.inference.keypoint_pose import KeypointPose
 from matl.inference.refine import PhotometricRefiner
@@ -84,6 +85,7 @@ class RecognizerOptions:
     verify_occluded_copies: float = 0.0
     refine_check: str = "none"
     keypoint_pose: str | KeypointPose = "unverified"
+    flow_pose: str | FlowPose = "unverified"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -130,6 +132,10 @@ class RecognizerOptions:
         elif not isinstance(self.keypoint_pose, KeypointPose):
             raise MatlError(f"keypoint_pose={self.keypoint_pose!r} is invalid: use none, unverified, always or a "
                             "KeypointPose")
+        if isinstance(self.flow_pose, str):
+            self.flow_pose = FlowPose(mode=self.flow_pose)
+        elif not isinstance(self.flow_pose, FlowPose):
+            raise MatlError(f"flow_pose={self.flow_pose!r} is invalid: use none, unverified, always or a FlowPose")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)

@@ -59,9 +59,10 @@ def gallery(tmp_path: Path) -> Path:
 
 
 def wrong_pose_recognizer(**options) -> Recognizer:
-    """One anchor, ``c()`` the mean colour, ``s()`` a fixed pose far from the truth (a shift of 20 px)."""
+    """One anchor, ``c()`` the mean colour, ``s()`` a fixed pose far from the truth (a shift of 20 px); the flow pose
+    off (this file tests the keypoint stage alone)."""
     wrong = torch.tensor([[1.0, 0.0, 20.0], [0.0, 1.0, -20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    options = {"threshold": None, "foreground": "none", **options}
+    options = {"threshold": None, "foreground": "none", "flow_pose": "none", **options}
     return Recognizer(StubModel(wrong), SIZE, 1, "stub-model", **options)
 
 

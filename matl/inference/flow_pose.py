@@ -1,0 +1,225 @@
+"""A pose from dense optical flow for answers that do not verify: the crop matched to its anchor pixel by pixel.
+
+Under an occluder the networks' pose of a partly hidden product is typically 10-20 px off at the model's 100 px, and
+the photometric refinement converges only from a few px (its loss, a sum over the anchor's plane, also gains where
+the visible print is stretched over the hidden part). Dense optical flow reaches that far: the crop, warped into the
+answer's anchor frame by the answer's pose, is matched to the anchor by OpenCV's DIS optical flow (coarse to fine,
+with its variational refinement), both brought to ``scale`` times the model's size first, where a 100 px product's
+print has enough detail. A homography is fitted by MAGSAC to the flow of the anchor's textured foreground pixels that
+the query shows (its visibility warped by the same pose): the occluder's and the background's flow are outliers. The
+fit, composed with the answer's pose, is the flow pose.
+
+The flow pose replaces the answer's where its verification distance is lower
+(:func:`~matl.inference.verify.verification_distance` over the query's visibility): it never changes the product or
+the plane, and it can make an answer verify (a partly hidden known product is then answered known). It is not refined
+afterwards: from a flow pose under an occluder the refinement moves the pose away more often than closer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from matl.inference.images import _with_rows
+from matl.inference.verify import Verification
+from matl.models.prediction import Prediction
+from matl.utils.errors import MatlError
+from matl.utils.timing import stage
+
+__all__ = ["FLOW_POSE_MODES", "FLOW_PRESETS", "FlowPose", "FlowPoses"]
+
+#: when the flow pose is tried: never, for answers that do not verify, for every answer
+FLOW_POSE_MODES = ("none", "unverified", "always")
+#: OpenCV's DIS presets by name
+FLOW_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+def _integer(value: Any, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _grey_u8(image: torch.Tensor, side: int) -> np.ndarray:
+    """``image`` ``(3, S, S)`` float in [0, 1] as ``(side, side)`` uint8 luminance (cubic resampling)."""
+    rgb = (image.detach().float().cpu().clamp(0, 1).permute(1, 2, 0).numpy() * 255.0).astype(np.uint8)
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    if grey.shape[0] == side:
+        return grey
+    return cv2.resize(grey, (side, side), interpolation=cv2.INTER_CUBIC)
+
+
+@dataclass
+class FlowPose:
+    """The flow pose's settings (Recognizer's ``flow_pose`` option).
+
+    Args:
+        mode: ``unverified`` (answers whose pose does not verify; the Recognizer's default), ``always`` or ``none``.
+        scale: the crop and the anchor are matched at this many times the model's size.
+        preset: OpenCV's DIS preset (``ultrafast``, ``fast``, ``medium``): patch size, stride and iterations.
+        finest_scale: DIS's finest pyramid level (0: full resolution).
+        variational_iterations: DIS's variational refinement iterations per level (0: none).
+        reproj_threshold: MAGSAC's inlier threshold, model px.
+        max_points: most flow vectors the homography is fitted to (the textured visible pixels, evenly thinned).
+        min_points: fewest such pixels for a fit.
+        texture: a pixel is textured where the anchor's Sobel gradient magnitude (luminance 0-255 at the matching
+            size) exceeds this: flat print carries no flow.
+        dark: anchor pixels of at most this luminance (0-255) are left out: the background (0 by convention) and the
+            darkest print, which the black of a query's masked-out pixels cannot be told from.
+    """
+
+    mode: str = "none"
+    scale: int = 2
+    preset: str = "fast"
+    finest_scale: int = 0
+    variational_iterations: int = 5
+    reproj_threshold: float = 1.0
+    max_points: int = 800
+    min_points: int = 12
+    texture: float = 20.0
+    dark: float = 8.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in FLOW_POSE_MODES:
+            raise MatlError(f"flow_pose={self.mode!r} is invalid: use {', '.join(FLOW_POSE_MODES)}")
+        if not _integer(self.scale, 1, 8):
+            raise MatlError(f"FlowPose scale={self.scale!r} is invalid: use an integer factor in [1, 8] (e.g. 2)")
+        if self.preset not in FLOW_PRESETS:
+            raise MatlError(f"FlowPose preset={self.preset!r} is invalid: use {', '.join(FLOW_PRESETS)}")
+        if not _integer(self.finest_scale, 0, 6):
+            raise MatlError(f"FlowPose finest_scale={self.finest_scale!r} is invalid: use a pyramid level in [0, 6] "
+                            "(0: full resolution)")
+        if not _integer(self.variational_iterations, 0, 100):
+            raise MatlError(f"FlowPose variational_iterations={self.variational_iterations!r} is invalid: use an "
+                            "integer in [0, 100]")
+        if not _number(self.reproj_threshold) or not self.reproj_threshold > 0:
+            raise MatlError(f"FlowPose reproj_threshold={self.reproj_threshold!r} is invalid: use a distance in "
+                            "model px > 0")
+        if not _integer(self.min_points, 4, 1_000_000) or not _integer(self.max_points, self.min_points, 1_000_000):
+            raise MatlError(f"FlowPose min_points={self.min_points!r}, max_points={self.max_points!r} are invalid: "
+                            "use integers with 4 <= min_points <= max_points (a homography needs 4)")
+        if not _number(self.texture) or self.texture < 0:
+            raise MatlError(f"FlowPose texture={self.texture!r} is invalid: use a gradient magnitude >= 0")
+        if not _number(self.dark) or not 0 <= self.dark < 255:
+            raise MatlError(f"FlowPose dark={self.dark!r} is invalid: use a luminance in [0, 255) (e.g. 8)")
+        self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
+            self.dark)
+        self._local = threading.local()  # each thread its own DIS object (recognizers may share these settings)
+
+    def __getstate__(self) -> dict[str, Any]:  # copies and pickles carry the settings, not the flow objects
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+
+    @property
+    def active(self) -> bool:
+        return self.mode != "none"
+
+    def options(self) -> dict[str, Any]:
+        """The settings, for result files."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def _flow(self) -> Any:
+        dis = getattr(self._local, "dis", None)
+        if dis is None:
+            dis = cv2.DISOpticalFlow_create(FLOW_PRESETS[self.preset])
+            dis.setFinestScale(self.finest_scale)
+            dis.setVariationalRefinementIterations(self.variational_iterations)
+            self._local.dis = dis
+        return dis
+
+    def pose(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
+             visibility: torch.Tensor | None = None) -> torch.Tensor | None:
+        """The flow pose of one query.
+
+        Args:
+            query: ``(3, S, S)`` the model-size query in [0, 1]; anchor: ``(3, S, S)`` its answer's anchor.
+            query_H_anchor: ``(3, 3)`` the answer's pixel pose (anchor -> query), where the flow starts.
+            visibility: ``(1, S, S)`` or ``(S, S)`` the query's visibility in [0, 1] (None: all of it).
+        Returns:
+            ``(3, 3)`` float64 pixel ``query_H_anchor``, or None where too few textured pixels are shown or no
+            homography fits.
+        """
+        size = int(query.shape[-1])
+        if query.shape[-2:] != anchor.shape[-2:] or query_H_anchor.shape != (3, 3):
+            raise MatlError(f"FlowPose.pose: query {tuple(query.shape)} and anchor {tuple(anchor.shape)} must be "
+                            f"(3, S, S) alike and query_H_anchor (3, 3), got {tuple(query_H_anchor.shape)}")
+        side = size * self.scale
+        up = np.diag([float(self.scale), float(self.scale), 1.0])
+        start = query_H_anchor.detach().double().cpu().numpy()
+        if not np.isfinite(start).all():
+            return None
+        at_side = up @ start @ np.linalg.inv(up)  # the same pose between the enlarged images
+        inverse = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
+        warped = cv2.warpPerspective(_grey_u8(query, side), at_side, (side, side), flags=inverse)
+        target = _grey_u8(anchor, side)
+        usable = target > self.dark  # the plane, less its darkest print (a masked-out query pixel is black too)
+        if visibility is not None:
+            seen = visibility.detach().float().cpu().reshape(size, size).numpy()
+            seen = cv2.resize(seen, (side, side), interpolation=cv2.INTER_LINEAR)
+            usable &= cv2.warpPerspective(seen, at_side, (side, side), flags=inverse) > 0.5
+        gx = cv2.Sobel(target, cv2.CV_32F, 1, 0)
+        gy = cv2.Sobel(target, cv2.CV_32F, 0, 1)
+        usable &= np.hypot(gx, gy) > self.texture
+        ys, xs = np.nonzero(usable)
+        if len(xs) < self.min_points:
+            return None
+        step = max(1, len(xs) // self.max_points)
+        xs, ys = xs[::step], ys[::step]
+        flow = self._flow().calc(target, warped, None)  # anchor -> warped query, px of the enlarged images
+        src = np.stack([xs, ys], 1).astype(np.float32)
+        dst = src + flow[ys, xs]
+        correction, _ = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, self.reproj_threshold * self.scale)
+        if correction is None or not np.isfinite(correction).all() or np.linalg.det(correction) <= 0:
+            return None
+        pose = start @ np.linalg.inv(up) @ correction @ up
+        return torch.from_numpy(pose / pose[2, 2])
+
+
+class FlowPoses:
+    """The flow side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its gallery, verification
+    options and ``flow_pose`` settings."""
+
+    def _flow_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
+                    visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:
+        """``pred`` and ``verification`` with the flow pose of each answer it applies to (``flow_pose``: those that do
+        not verify, or all) where its verification distance is lower than the answer's; ``queries`` ``(B, 3, S, S)``
+        and ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them."""
+        settings: FlowPose = self.flow_pose
+        rows = [i for i in range(len(queries)) if settings.mode == "always" or not bool(verification.verified[i])]
+        if not rows:
+            return pred, verification
+        with stage(self.stage_timer, "flow"):
+            images = self._build()[1].images
+            found: list[tuple[int, torch.Tensor]] = []
+            for i in rows:
+                g = int(pred.gallery_index[i])
+                pose = settings.pose(queries[i], images[g], pred.query_H_anchor[i],
+                                     None if visibility is None else visibility[i])
+                if pose is not None:
+                    found.append((i, pose))
+            if not found:
+                return pred, verification
+            at = [i for i, _ in found]
+            index = pred.gallery_index[at].cpu()
+            poses = torch.stack([p for _, p in found])
+            distance = self._pose_check(queries[at], poses, index, None if visibility is None else visibility[at])
+            better = [j for j, i in enumerate(at) if float(distance[j]) < float(verification.distance[i])]
+            if not better:
+                return pred, verification
+            take = [at[j] for j in better]
+            pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
+            kept = distance[better].to(verification.distance)
+            answer = {"query_H_anchor": poses[better], "distance": kept, "verified": kept <= self.verify_max}
+            source = list(range(len(take)))
+            return pred, dataclasses.replace(verification, **{
+                name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})

@@ -1,0 +1,131 @@
+"""The flow pose of answers that do not verify (``flow_pose``): a pose a few px off corrected by dense optical flow
+over the visible print, an occluder left out, and kept only where it verifies better."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from matl import Recognizer
+from matl.data.image_files import fit_geometry
+from matl.geometry import corner_error_px
+from matl.inference.flow_pose import FlowPose
+from matl.utils.errors import MatlError
+from tests.inference.test_api import StubModel
+from tests.inference.test_keypoint_pose import GALLERY_HW, QUERY_H_GALLERY, QUERY_HW, error_px, hidden_query, print_like
+from tests.predict_helpers import write_png
+
+SIZE = 100
+#: anchor pixels -> query pixels at the model's size: a turn, a scale and a little perspective
+QUERY_H_ANCHOR = torch.tensor([[0.93, -0.2, 12.0], [0.18, 0.9, 8.0], [0.0003, -0.0002, 1.0]], dtype=torch.float64)
+#: a start about 6 px off: shifted and turned a little in the anchor's frame
+OFF = torch.tensor([[0.995, -0.05, 6.0], [0.05, 0.995, -4.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def anchor_and_query(hide: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """A printed anchor ``(3, S, S)`` on black, the query it gives at ``QUERY_H_ANCHOR`` and, with ``hide``, its
+    visibility ``(1, S, S)`` with a bar hiding a third of the product (its pixels black, as a mask leaves them)."""
+    print_ = cv2.resize(print_like(3, (0.7, 0.6, 0.2)), (80, 80), interpolation=cv2.INTER_AREA)
+    anchor = np.zeros((SIZE, SIZE, 3), np.float32)
+    anchor[10:90, 10:90] = print_
+    query = cv2.warpPerspective(anchor, QUERY_H_ANCHOR.numpy(), (SIZE, SIZE), flags=cv2.INTER_LINEAR)
+    visibility = None
+    if hide:
+        seen = np.ones((SIZE, SIZE), np.float32)
+        seen[:, 55:80] = 0.0
+        query = query * seen[..., None]
+        visibility = torch.from_numpy(seen)[None]
+    return torch.from_numpy(anchor).permute(2, 0, 1), torch.from_numpy(query).permute(2, 0, 1), visibility
+
+
+def error(query_H_anchor: torch.Tensor) -> float:
+    return float(corner_error_px(query_H_anchor[None], QUERY_H_ANCHOR[None], (SIZE, SIZE))[0])
+
+
+@pytest.mark.parametrize("hide", [False, True])
+def test_a_pose_a_few_px_off_is_corrected(hide: bool) -> None:
+    anchor, query, visibility = anchor_and_query(hide)
+    start = QUERY_H_ANCHOR @ OFF
+    assert error(start) > 4.0
+    pose = FlowPose(mode="unverified").pose(query, anchor, start, visibility)
+    assert pose is not None and pose.dtype == torch.float64 and error(pose) < 1.0
+
+
+def test_the_true_pose_stays() -> None:
+    anchor, query, visibility = anchor_and_query(True)
+    pose = FlowPose(mode="unverified").pose(query, anchor, QUERY_H_ANCHOR, visibility)
+    assert pose is not None and error(pose) < 0.5
+
+
+def test_no_pose_without_visible_texture() -> None:
+    anchor, query, _ = anchor_and_query(False)
+    flat = torch.full_like(anchor, 0.5)
+    assert FlowPose(mode="unverified").pose(query, flat, QUERY_H_ANCHOR) is None  # no gradient: nothing to fit
+    hidden = torch.zeros(1, SIZE, SIZE)
+    assert FlowPose(mode="unverified").pose(query, anchor, QUERY_H_ANCHOR, hidden) is None  # nothing shown
+    bad = QUERY_H_ANCHOR.clone()
+    bad[0, 0] = float("nan")
+    assert FlowPose(mode="unverified").pose(query, anchor, bad) is None
+
+
+@pytest.mark.parametrize(("key", "value", "named"), [
+    ("mode", "sometimes", "flow_pose='sometimes'"), ("scale", 0, "scale=0"), ("preset", "slow", "preset='slow'"),
+    ("finest_scale", -1, "finest_scale=-1"), ("variational_iterations", 1.5, "variational_iterations=1.5"),
+    ("reproj_threshold", 0, "reproj_threshold=0"), ("min_points", 3, "min_points=3"),
+    ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255")])
+def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
+    with pytest.raises(MatlError, match=named.replace("(", r"\(")) as info:
+        FlowPose(**{key: value})
+    assert "\n" not in str(info.value)
+
+
+def test_settings_survive_a_copy() -> None:
+    settings = FlowPose(mode="always", scale=3, texture=10.0)
+    again = pickle.loads(pickle.dumps(settings))
+    assert again.options() == settings.options() and again.active
+    anchor, query, visibility = anchor_and_query(True)
+    assert again.pose(query, anchor, QUERY_H_ANCHOR @ OFF, visibility) is not None
+
+
+@pytest.fixture()
+def gallery(tmp_path: Path) -> Path:
+    write_png(tmp_path / "red_box" / "front.png", print_like(0, (0.8, 0.2, 0.1)))
+    return tmp_path
+
+
+def off_pose_recognizer(shift: float, **options) -> Recognizer:
+    """One anchor, ``c()`` the mean colour, ``s()`` the truth shifted by ``shift`` px; the keypoint pose off (this
+    file tests the flow pose alone)."""
+    gallery_fit = fit_geometry(*GALLERY_HW, SIZE).model_H_file
+    query_fit = fit_geometry(*QUERY_HW, SIZE).model_H_file
+    truth = query_fit @ torch.from_numpy(QUERY_H_GALLERY) @ torch.linalg.inv(gallery_fit)
+    wrong = truth @ torch.tensor([[1.0, 0.0, shift], [0.0, 1.0, -shift], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    options = {"threshold": None, "foreground": "none", "keypoint_pose": "none", **options}
+    return Recognizer(StubModel(wrong), SIZE, 1, "stub-model", **options)
+
+
+def test_an_answer_that_does_not_verify_takes_the_flow_pose(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    without = off_pose_recognizer(4.0, flow_pose="none").enrol(gallery, cache=False).predict(query)
+    answer = off_pose_recognizer(4.0).enrol(gallery, cache=False).predict(query)  # flow_pose=unverified: the default
+    assert error_px(without.H) > 4.0 and error_px(answer.H) < 3.0
+    assert answer.verification < without.verification
+    assert off_pose_recognizer(4.0).options()["flow_pose"]["mode"] == "unverified"
+
+
+def test_a_pose_that_verifies_is_left_alone(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    # verify_max=2 verifies every pose: unverified leaves it, always corrects it where it verifies better
+    loose = off_pose_recognizer(4.0, verify_max=2.0).enrol(gallery, cache=False).predict(query)
+    always = off_pose_recognizer(4.0, verify_max=2.0, flow_pose="always").enrol(gallery, cache=False).predict(query)
+    assert error_px(loose.H) > 4.0 and error_px(always.H) < 3.0
+
+
+def test_a_bad_flow_pose_option_is_a_one_line_error() -> None:
+    with pytest.raises(MatlError, match="flow_pose=3 is invalid"):
+        off_pose_recognizer(0.0, flow_pose=3)
