@@ -30,7 +30,7 @@ MATL_METHODS = ("matl", "matl_refine")  # the checkpoint's model; the others are
 OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
                  "verify_refine": True, "verify_statistic": "patches", "verify_min_visible": 0.3,
                  "verify_occluded_copies": 0.0, "refine_check": "none", "keypoint_pose": "unverified",
-                 "flow_pose": "unverified"}
+                 "flow_pose": "always"}
 
 
 # -------------------------------------------------------------------------------------- commands

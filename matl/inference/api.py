@@ -205,10 +205,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             against its product's planes, then the next nearest products' (:mod:`matl.inference.keypoint_pose`), and
             takes that pose where it verifies better (another product only where it verifies); ``always``; ``none``;
             or a :class:`~matl.inference.keypoint_pose.KeypointPose` with its own settings.
-        flow_pose: ``unverified`` (default): an answer whose pose does not verify is warped into its anchor's frame,
-            matched to the anchor by dense optical flow, and takes the homography fitted to the flow of its visible
-            textured pixels where that verifies better (:mod:`matl.inference.flow_pose`); ``always``; ``none``; or a
-            :class:`~matl.inference.flow_pose.FlowPose` with its own settings.
+        flow_pose: ``always`` (default): an answer whose verification distance is above 0.03 is warped into its
+            anchor's frame, matched to the anchor by dense optical flow, and takes the homography fitted to the flow
+            of its visible textured pixels where that verifies better (:mod:`matl.inference.flow_pose`);
+            ``unverified`` (answers that do not verify); ``none``; or a :class:`~matl.inference.flow_pose.FlowPose`
+            with its own settings.
         refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
             unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
             query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.

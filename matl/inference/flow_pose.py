@@ -1,4 +1,4 @@
-"""A pose from dense optical flow for answers that do not verify: the crop matched to its anchor pixel by pixel.
+"""A pose from dense optical flow: the crop matched to its answer's anchor pixel by pixel.
 
 Under an occluder the networks' pose of a partly hidden product is typically 10-20 px off at the model's 100 px, and
 the photometric refinement converges only from a few px (its loss, a sum over the anchor's plane, also gains where
@@ -9,7 +9,8 @@ print has enough detail. A homography is fitted by MAGSAC to the flow of the anc
 the query shows (its visibility warped by the same pose): the occluder's and the background's flow are outliers. The
 fit, composed with the answer's pose, is the flow pose.
 
-The flow pose replaces the answer's where its verification distance is lower
+It is tried for every answer whose verification distance is above ``above`` (``mode=always``, the default) or for
+those that do not verify (``unverified``), and replaces the answer's pose where its verification distance is lower
 (:func:`~matl.inference.verify.verification_distance` over the query's visibility): it never changes the product or
 the plane, and it can make an answer verify (a partly hidden known product is then answered known). It is not refined
 afterwards: from a flow pose under an occluder the refinement moves the pose away more often than closer.
@@ -61,7 +62,11 @@ class FlowPose:
     """The flow pose's settings (Recognizer's ``flow_pose`` option).
 
     Args:
-        mode: ``unverified`` (answers whose pose does not verify; the Recognizer's default), ``always`` or ``none``.
+        mode: ``always`` (every answer whose verification distance is above ``above``; the Recognizer's default),
+            ``unverified`` (answers whose pose does not verify) or ``none``.
+        above: ``always``: the answers whose verification distance (``1 - ZNCC``) is at most this are left as they
+            are (a pose that close is as good as the flow's; 0: every answer). On validation 0.03 skips about half
+            of the whole products' queries and loses none of the flow's gains (docs/decisions.md).
         scale: the crop and the anchor are matched at this many times the model's size.
         preset: OpenCV's DIS preset (``ultrafast``, ``fast``, ``medium``): patch size, stride and iterations.
         finest_scale: DIS's finest pyramid level (0: full resolution).
@@ -76,6 +81,7 @@ class FlowPose:
     """
 
     mode: str = "none"
+    above: float = 0.03
     scale: int = 2
     preset: str = "fast"
     finest_scale: int = 0
@@ -89,6 +95,9 @@ class FlowPose:
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
             raise MatlError(f"flow_pose={self.mode!r} is invalid: use {', '.join(FLOW_POSE_MODES)}")
+        if not _number(self.above) or not 0.0 <= self.above <= 2.0:
+            raise MatlError(f"FlowPose above={self.above!r} is invalid: use a verification distance in [0, 2] (0: "
+                            "every answer)")
         if not _integer(self.scale, 1, 8):
             raise MatlError(f"FlowPose scale={self.scale!r} is invalid: use an integer factor in [1, 8] (e.g. 2)")
         if self.preset not in FLOW_PRESETS:
@@ -111,6 +120,7 @@ class FlowPose:
             raise MatlError(f"FlowPose dark={self.dark!r} is invalid: use a luminance in [0, 255) (e.g. 8)")
         self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
             self.dark)
+        self.above = float(self.above)
         self._local = threading.local()  # each thread its own DIS object (recognizers may share these settings)
 
     def __getstate__(self) -> dict[str, Any]:  # copies and pickles carry the settings, not the flow objects
@@ -192,10 +202,12 @@ class FlowPoses:
     def _flow_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
                     visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:
         """``pred`` and ``verification`` with the flow pose of each answer it applies to (``flow_pose``: those that do
-        not verify, or all) where its verification distance is lower than the answer's; ``queries`` ``(B, 3, S, S)``
-        and ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them."""
+        not verify, or all whose verification distance is above ``above``) where its verification distance is lower
+        than the answer's; ``queries`` ``(B, 3, S, S)`` and ``visibility`` ``(B, 1, S, S)`` (or None) as verification
+        saw them."""
         settings: FlowPose = self.flow_pose
-        rows = [i for i in range(len(queries)) if settings.mode == "always" or not bool(verification.verified[i])]
+        rows = [i for i in range(len(queries)) if not bool(verification.verified[i]) or (
+            settings.mode == "always" and float(verification.distance[i]) > settings.above)]
         if not rows:
             return pred, verification
         with stage(self.stage_timer, "flow"):

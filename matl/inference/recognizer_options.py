@@ -85,7 +85,7 @@ class RecognizerOptions:
     verify_occluded_copies: float = 0.0
     refine_check: str = "none"
     keypoint_pose: str | KeypointPose = "unverified"
-    flow_pose: str | FlowPose = "unverified"
+    flow_pose: str | FlowPose = "always"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64

@@ -77,7 +77,8 @@ def test_no_pose_without_visible_texture() -> None:
     ("mode", "sometimes", "flow_pose='sometimes'"), ("scale", 0, "scale=0"), ("preset", "slow", "preset='slow'"),
     ("finest_scale", -1, "finest_scale=-1"), ("variational_iterations", 1.5, "variational_iterations=1.5"),
     ("reproj_threshold", 0, "reproj_threshold=0"), ("min_points", 3, "min_points=3"),
-    ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255")])
+    ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255"),
+    ("above", -0.1, "above=-0.1")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named.replace("(", r"\(")) as info:
         FlowPose(**{key: value})
@@ -112,18 +113,22 @@ def off_pose_recognizer(shift: float, **options) -> Recognizer:
 def test_an_answer_that_does_not_verify_takes_the_flow_pose(gallery: Path) -> None:
     query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
     without = off_pose_recognizer(4.0, flow_pose="none").enrol(gallery, cache=False).predict(query)
-    answer = off_pose_recognizer(4.0).enrol(gallery, cache=False).predict(query)  # flow_pose=unverified: the default
+    answer = off_pose_recognizer(4.0, flow_pose="unverified").enrol(gallery, cache=False).predict(query)
     assert error_px(without.H) > 4.0 and error_px(answer.H) < 3.0
     assert answer.verification < without.verification
-    assert off_pose_recognizer(4.0).options()["flow_pose"]["mode"] == "unverified"
+    assert off_pose_recognizer(4.0).options()["flow_pose"]["mode"] == "always"  # the default
 
 
 def test_a_pose_that_verifies_is_left_alone(gallery: Path) -> None:
     query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
-    # verify_max=2 verifies every pose: unverified leaves it, always corrects it where it verifies better
-    loose = off_pose_recognizer(4.0, verify_max=2.0).enrol(gallery, cache=False).predict(query)
-    always = off_pose_recognizer(4.0, verify_max=2.0, flow_pose="always").enrol(gallery, cache=False).predict(query)
+    # verify_max=2 verifies every pose: unverified leaves it, always (the default) corrects it where it verifies
+    # better, unless its verification distance is at most ``above``
+    loose = off_pose_recognizer(4.0, verify_max=2.0, flow_pose="unverified").enrol(gallery, cache=False).predict(query)
+    always = off_pose_recognizer(4.0, verify_max=2.0).enrol(gallery, cache=False).predict(query)
     assert error_px(loose.H) > 4.0 and error_px(always.H) < 3.0
+    close = FlowPose(mode="always", above=loose.verification + 0.01)
+    kept = off_pose_recognizer(4.0, verify_max=2.0, flow_pose=close).enrol(gallery, cache=False).predict(query)
+    np.testing.assert_array_equal(kept.H, loose.H)
 
 
 def test_a_bad_flow_pose_option_is_a_one_line_error() -> None:
