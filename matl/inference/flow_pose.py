@@ -19,7 +19,6 @@ afterwards: from a flow pose under an occluder the refinement moves the pose awa
 from __future__ import annotations
 
 import dataclasses
-import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 
 from matl.inference.images import _with_rows
+from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
@@ -58,7 +58,7 @@ def _grey_u8(image: torch.Tensor, side: int) -> np.ndarray:
 
 
 @dataclass
-class FlowPose:
+class FlowPose(StageSettings):
     """The flow pose's settings (Recognizer's ``flow_pose`` option).
 
     Args:
@@ -121,22 +121,7 @@ class FlowPose:
         self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
             self.dark)
         self.above = float(self.above)
-        self._local = threading.local()  # each thread its own DIS object (recognizers may share these settings)
-
-    def __getstate__(self) -> dict[str, Any]:  # copies and pickles carry the settings, not the flow objects
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-
-    @property
-    def active(self) -> bool:
-        return self.mode != "none"
-
-    def options(self) -> dict[str, Any]:
-        """The settings, for result files."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        self._new_workers()  # each thread its own DIS object
 
     def _flow(self) -> Any:
         dis = getattr(self._local, "dis", None)

@@ -17,9 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -35,6 +34,7 @@ from matl.baselines.keypoints import (
 from matl.baselines.sift import SiftRansacMatcher
 from matl.data.image_files import fit_to_model
 from matl.inference.images import _query_visibility, _with_rows
+from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
@@ -58,7 +58,7 @@ def _scaled(rgb: np.ndarray, size: int) -> tuple[np.ndarray, float]:
 
 
 @dataclass
-class KeypointPose:
+class KeypointPose(StageSettings):
     """The keypoint pose's settings (Recognizer's ``keypoint_pose*`` options).
 
     Args:
@@ -116,18 +116,7 @@ class KeypointPose:
         if self.method not in RANSAC_METHODS:
             raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
-        self._local = threading.local()  # each thread its own SIFT detector (recognizers may share these settings)
-
-    def __getstate__(self) -> dict[str, Any]:  # copies and pickles carry the settings, not the detectors
-        return {k: v for k, v in self.__dict__.items() if k != "_local"}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-
-    @property
-    def active(self) -> bool:
-        return self.mode != "none"
+        self._new_workers()  # each thread its own SIFT detector
 
     def _extract(self, rgb: np.ndarray) -> ImageFeatures:
         """SIFT features of ``rgb`` ``(H, W, 3)`` float in [0, 1] at the working size, keypoints in ``rgb``'s own
@@ -161,8 +150,6 @@ class KeypointPose:
                               reproj_threshold=self.reproj_threshold * model_px, min_inliers=self.min_inliers,
                               method=RANSAC_METHODS[self.method])
 
-    def options(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
 def _smallest_rotation(query_H_canon: torch.Tensor, anchor_H_canon: torch.Tensor) -> tuple[int, torch.Tensor]:
