@@ -19,12 +19,12 @@ def test_the_answer_of_queries_framed_at_model_size(tmp_path: Path) -> None:
     plain = stub_recognizer(threshold=None, foreground="none", verify_top_k=0).enrol(gallery)
     recognizer, _ = plain._build()
     prepared = [mask_query(plain.foreground, rgb)]
-    pred, framed, model_H_file, verification = plain._answer(recognizer, prepared)
+    pred, framed, model_H_file, verification, visibility = plain._answer(recognizer, prepared)
     expected, fit = fit_to_model(rgb, SIZE, plain.query_fill)
-    assert verification is None and framed.shape == (1, 3, SIZE, SIZE)
+    assert verification is None and visibility is None and framed.shape == (1, 3, SIZE, SIZE)
     assert torch.equal(framed[0], expected) and torch.equal(model_H_file[0], fit.model_H_file)
     assert torch.equal(pred.plane_index, recognizer(framed).plane_index)
     verified = stub_recognizer(threshold=None, foreground="none").enrol(gallery)
-    pred_v, framed_v, _, verification = verified._answer(verified._build()[0], prepared)
+    pred_v, framed_v, _, verification, _ = verified._answer(verified._build()[0], prepared)
     assert verification is not None and bool(verification.verified[0]) and torch.equal(framed_v, framed)
     assert verified.planes[int(pred_v.plane_index[0])][0] == "red_box"
