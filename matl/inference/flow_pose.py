@@ -12,8 +12,10 @@ fit, composed with the answer's pose, is the flow pose.
 It is tried for every answer whose verification distance is above ``above`` (``mode=always``, the default) or for
 those that do not verify (``unverified``), and replaces the answer's pose where its verification distance is lower
 (:func:`~matl.inference.verify.verification_distance` over the query's visibility): it never changes the product or
-the plane, and it can make an answer verify (a partly hidden known product is then answered known). It is not refined
-afterwards: from a flow pose under an occluder the refinement moves the pose away more often than closer.
+the plane, and an answer it alone brings under ``verify_max`` is not counted as verified: the open set judges it by its
+statistic, because the flow can fit a near twin's print to an unenrolled product's crop well enough to verify. It is
+not refined afterwards: from a flow pose under an occluder the refinement moves the pose away more often than
+closer.
 """
 
 from __future__ import annotations
@@ -216,7 +218,9 @@ class FlowPoses:
             take = [at[j] for j in better]
             pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
             kept = distance[better].to(verification.distance)
-            answer = {"query_H_anchor": poses[better], "distance": kept, "verified": kept <= self.verify_max}
+            # verified stays as it was: an answer the flow pose alone makes verify is judged known by the open-set
+            # statistic (the flow can fit a near twin's print to an unenrolled product's crop well enough to verify)
+            answer = {"query_H_anchor": poses[better], "distance": kept}
             source = list(range(len(take)))
             return pred, dataclasses.replace(verification, **{
                 name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})
