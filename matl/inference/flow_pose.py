@@ -42,6 +42,8 @@ FLOW_POSE_MODES = ("none", "unverified", "always")
 #: OpenCV's DIS presets by name
 FLOW_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                 "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+
+
 def _integer(value: Any, low: int, high: int) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
 
@@ -50,7 +52,7 @@ def _number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _grey_u8(image: torch.Tensor, side: int) -> np.ndarray:
+def _luminance_u8(image: torch.Tensor, side: int) -> np.ndarray:
     """``image`` ``(3, S, S)`` float in [0, 1] as ``(side, side)`` uint8 luminance (cubic resampling)."""
     rgb = (image.detach().float().cpu().clamp(0, 1).permute(1, 2, 0).numpy() * 255.0).astype(np.uint8)
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
@@ -157,8 +159,8 @@ class FlowPose(StageSettings):
             return None
         at_side = up @ start @ np.linalg.inv(up)  # the same pose between the enlarged images
         inverse = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
-        warped = cv2.warpPerspective(_grey_u8(query, side), at_side, (side, side), flags=inverse)
-        target = _grey_u8(anchor, side)
+        warped = cv2.warpPerspective(_luminance_u8(query, side), at_side, (side, side), flags=inverse)
+        target = _luminance_u8(anchor, side)
         usable = target > self.dark  # the plane, less its darkest print (a masked-out query pixel is black too)
         if visibility is not None:
             seen = visibility.detach().float().cpu().reshape(size, size).numpy()
@@ -179,6 +181,8 @@ class FlowPose(StageSettings):
         if correction is None or not np.isfinite(correction).all() or np.linalg.det(correction) <= 0:
             return None
         pose = start @ np.linalg.inv(up) @ correction @ up
+        if abs(pose[2, 2]) < 1e-12:  # the plane's origin sent to infinity: no usable pose
+            return None
         return torch.from_numpy(pose / pose[2, 2])
 
 
