@@ -82,6 +82,9 @@ class FlowPose(StageSettings):
             size) exceeds this: flat print carries no flow.
         dark: anchor pixels of at most this luminance (0-255) are left out: the background (0 by convention) and the
             darkest print, which the black of a query's masked-out pixels cannot be told from.
+        verifies: an answer the flow pose brings to a verification distance of at most this counts as verified by
+            the open set; None (default): only answers that verified before the flow pose do (the flow can fit a
+            near twin's print to an unenrolled product's crop well enough to pass ``verify_max``).
     """
 
     mode: str = "none"
@@ -95,6 +98,7 @@ class FlowPose(StageSettings):
     min_points: int = 12
     texture: float = 20.0
     dark: float = 8.0
+    verifies: float | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
@@ -125,6 +129,9 @@ class FlowPose(StageSettings):
         self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
             self.dark)
         self.above = float(self.above)
+        if self.verifies is not None and (not _number(self.verifies) or not 0.0 <= self.verifies <= 2.0):
+            raise MatlError(f"FlowPose verifies={self.verifies!r} is invalid: use a verification distance in [0, 2] "
+                            "or None (the flow pose never makes an answer count as verified)")
         self._new_workers()  # each thread its own DIS object
 
     def _flow(self) -> Any:
@@ -222,9 +229,11 @@ class FlowPoses:
             take = [at[j] for j in better]
             pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
             kept = distance[better].to(verification.distance)
-            # verified stays as it was: an answer the flow pose alone makes verify is judged known by the open-set
-            # statistic (the flow can fit a near twin's print to an unenrolled product's crop well enough to verify)
+            # verified stays as it was unless the flow pose verifies within ``verifies``: an answer it alone makes
+            # verify is judged known by the open-set statistic
             answer = {"query_H_anchor": poses[better], "distance": kept}
+            if settings.verifies is not None:
+                answer["verified"] = verification.verified[take] | (kept <= settings.verifies)
             source = list(range(len(take)))
             return pred, dataclasses.replace(verification, **{
                 name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from matl import Recognizer
+from matl import Match, Recognizer
 from matl.data.image_files import fit_geometry
 from matl.geometry import corner_error_px
 from matl.inference.flow_pose import FlowPose
@@ -78,7 +78,7 @@ def test_no_pose_without_visible_texture() -> None:
     ("finest_scale", -1, "finest_scale=-1"), ("variational_iterations", 1.5, "variational_iterations=1.5"),
     ("reproj_threshold", 0, "reproj_threshold=0"), ("min_points", 3, "min_points=3"),
     ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255"),
-    ("above", -0.1, "above=-0.1")])
+    ("above", -0.1, "above=-0.1"), ("verifies", 3, "verifies=3")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named.replace("(", r"\(")) as info:
         FlowPose(**{key: value})
@@ -129,6 +129,21 @@ def test_a_pose_that_verifies_is_left_alone(gallery: Path) -> None:
     close = FlowPose(mode="always", above=loose.verification + 0.01)
     kept = off_pose_recognizer(4.0, verify_max=2.0, flow_pose=close).enrol(gallery, cache=False).predict(query)
     np.testing.assert_array_equal(kept.H, loose.H)
+
+
+def test_an_answer_the_flow_pose_alone_makes_verify_counts_as_verified_only_within_verifies(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    # verify_max=0.3: the networks' pose does not verify, the flow pose does; the open-set statistic is 0 for an
+    # answer counted as verified
+    strict = {"verify_max": 0.3, "verify_refine": False}  # no candidate refinement: the networks' pose stays
+
+    def answer(**options) -> Match:
+        return off_pose_recognizer(4.0, **strict, **options).enrol(gallery, cache=False).predict(query)
+
+    plain, flowed = answer(flow_pose="none"), answer()
+    counted = answer(flow_pose=FlowPose(mode="always", verifies=0.3))
+    assert plain.verification > 0.3 and flowed.verification <= 0.3 and counted.verification == flowed.verification
+    assert flowed.statistic == plain.statistic > 0.0 and counted.statistic == 0.0
 
 
 def test_a_bad_flow_pose_option_is_a_one_line_error() -> None:
