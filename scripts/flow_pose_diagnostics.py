@@ -3,6 +3,7 @@ pose").
 
     python scripts/flow_pose_diagnostics.py <unseen out>/occluded [--ckpt default] [--true-mask]
     python scripts/flow_pose_diagnostics.py <unseen out>/<condition> --above 0 0.03 0.05
+    python scripts/flow_pose_diagnostics.py <unseen leave_out=0.5 out>/<condition> --verifies none 0.05 0.03
 
 For the RGB queries of a ``matl.unseen`` condition folder (``truth.jsonl``, ``gallery/``, ``queries/``) whose answer
 (``refine=true``, ``flow_pose=none``) has the right product and plane, in model px (corner error, 100 px frame):
@@ -17,6 +18,11 @@ visible mask (``mask_file``) instead of the foreground step's.
 
 ``--above``: instead, the recognizer with ``flow_pose=FlowPose(mode="always", above=a)`` for each ``a`` given, its
 closed-set rec_acc and ``pose_acc_5px`` over the folder's RGB queries and its median milliseconds a query.
+
+``--verifies``: on a folder of ``matl.unseen leave_out=...`` (``truth.jsonl`` the enrolled products' queries,
+``truth_left_out.jsonl`` the others'), the open-set recognizer (``threshold=auto``, the gallery's own calibration)
+with ``flow_pose=FlowPose(mode="always", verifies=v)`` for each ``v`` (``none``: None): the share of enrolled
+queries answered with their product and of left-out ones answered unknown.
 """
 
 from __future__ import annotations
@@ -78,15 +84,33 @@ def sweep_above(folder: Path, ckpt: str, values: list[float]) -> None:
               f"{np.median(times[1:] or times):.1f} ms a query ({len(truths)} RGB queries)")
 
 
+def sweep_verifies(folder: Path, ckpt: str, values: list[str]) -> None:
+    """Enrolled queries answered known and right, left-out ones answered unknown, for each ``verifies``."""
+    enrolled = [json.loads(line) for line in (folder / "truth.jsonl").read_text().splitlines()]
+    left_out = [json.loads(line) for line in (folder / "truth_left_out.jsonl").read_text().splitlines()]
+    rec = (Recognizer.pretrained(ckpt) if ckpt in ("default", "fast") else Recognizer.from_checkpoint(ckpt))
+    rec.enrol(folder / "gallery")
+    for value in values:
+        rec.flow_pose = FlowPose(mode="always", verifies=None if value == "none" else float(value))
+        known = sum(rec.predict(str(folder / t["image"])).object == t["object"] for t in enrolled)
+        unknown = sum(rec.predict(str(folder / t["image"])).object is None for t in left_out)
+        print(f"verifies={value}: enrolled answered right and known {known / max(len(enrolled), 1):.3f}, left-out "
+              f"answered unknown {unknown / max(len(left_out), 1):.3f} ({len(enrolled)} / {len(left_out)} queries)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path)
     parser.add_argument("--ckpt", default="default", help="a shipped model's name (default, fast) or a checkpoint")
     parser.add_argument("--true-mask", action="store_true")
     parser.add_argument("--above", type=float, nargs="+", help="sweep FlowPose.above instead")
+    parser.add_argument("--verifies", nargs="+", help="sweep FlowPose.verifies (none or a distance) instead")
     args = parser.parse_args()
     if args.above:
         sweep_above(args.folder, args.ckpt, args.above)
+        return
+    if args.verifies:
+        sweep_verifies(args.folder, args.ckpt, args.verifies)
         return
     options = {"refine": True, "threshold": None, "flow_pose": "none"}
     rec = (Recognizer.pretrained(args.ckpt, **options) if args.ckpt in ("default", "fast")
