@@ -503,7 +503,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                     recognizer, prepared, pred, queries, verification, visibility)
         if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
-            pred, verification = self._flow_poses(queries, pred, verification, visibility)
+            upscale = (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).abs().sqrt()  # model px per file px
+            pred, verification = self._flow_poses(queries, pred, verification, visibility, upscale)
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None

@@ -85,6 +85,9 @@ class FlowPose(StageSettings):
         verifies: an answer the flow pose brings to a verification distance of at most this counts as verified by
             the open set; None (default): only answers that verified before the flow pose do (the flow can fit a
             near twin's print to an unenrolled product's crop well enough to pass ``verify_max``).
+        max_upscale: a query whose file was enlarged more than this many times to the model's size is left as it is
+            (its print is too blurred against the sharp anchor: on validation 40 px crops lost 0.03 of their refined
+            ``pose_acc_5px`` to the flow pose); None: every query.
     """
 
     mode: str = "none"
@@ -99,6 +102,7 @@ class FlowPose(StageSettings):
     texture: float = 20.0
     dark: float = 8.0
     verifies: float | None = None
+    max_upscale: float | None = 1.5
 
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
@@ -129,6 +133,9 @@ class FlowPose(StageSettings):
         self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
             self.dark)
         self.above = float(self.above)
+        if self.max_upscale is not None and (not _number(self.max_upscale) or not self.max_upscale >= 1.0):
+            raise MatlError(f"FlowPose max_upscale={self.max_upscale!r} is invalid: use a factor >= 1 or None (every "
+                            "query)")
         if self.verifies is not None and (not _number(self.verifies) or not 0.0 <= self.verifies <= 2.0):
             raise MatlError(f"FlowPose verifies={self.verifies!r} is invalid: use a verification distance in [0, 2] "
                             "or None (the flow pose never makes an answer count as verified)")
@@ -198,14 +205,17 @@ class FlowPoses:
     options and ``flow_pose`` settings."""
 
     def _flow_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
-                    visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:
+                    visibility: torch.Tensor | None, upscale: torch.Tensor | None = None
+                    ) -> tuple[Prediction, Verification]:
         """``pred`` and ``verification`` with the flow pose of each answer it applies to (``flow_pose``: those that do
-        not verify, or all whose verification distance is above ``above``) where its verification distance is lower
-        than the answer's; ``queries`` ``(B, 3, S, S)`` and ``visibility`` ``(B, 1, S, S)`` (or None) as verification
-        saw them."""
+        not verify, or all whose verification distance is above ``above``; not those enlarged more than
+        ``max_upscale``) where its verification distance is lower than the answer's; ``queries`` ``(B, 3, S, S)`` and
+        ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them, ``upscale`` ``(B,)`` each file's
+        enlargement to the model's size (None: not known, every query)."""
         settings: FlowPose = self.flow_pose
-        rows = [i for i in range(len(queries)) if not bool(verification.verified[i]) or (
-            settings.mode == "always" and float(verification.distance[i]) > settings.above)]
+        rows = [i for i in range(len(queries)) if (not bool(verification.verified[i]) or (
+            settings.mode == "always" and float(verification.distance[i]) > settings.above)) and (
+            upscale is None or settings.max_upscale is None or float(upscale[i]) <= settings.max_upscale)]
         if not rows:
             return pred, verification
         with stage(self.stage_timer, "flow"):

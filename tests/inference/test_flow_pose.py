@@ -78,7 +78,7 @@ def test_no_pose_without_visible_texture() -> None:
     ("finest_scale", -1, "finest_scale=-1"), ("variational_iterations", 1.5, "variational_iterations=1.5"),
     ("reproj_threshold", 0, "reproj_threshold=0"), ("min_points", 3, "min_points=3"),
     ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255"),
-    ("above", -0.1, "above=-0.1"), ("verifies", 3, "verifies=3")])
+    ("above", -0.1, "above=-0.1"), ("verifies", 3, "verifies=3"), ("max_upscale", 0.5, "max_upscale=0.5")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named.replace("(", r"\(")) as info:
         FlowPose(**{key: value})
@@ -144,6 +144,18 @@ def test_an_answer_the_flow_pose_alone_makes_verify_counts_as_verified_only_with
     counted = answer(flow_pose=FlowPose(mode="always", verifies=0.3))
     assert plain.verification > 0.3 and flowed.verification <= 0.3 and counted.verification == flowed.verification
     assert flowed.statistic == plain.statistic > 0.0 and counted.statistic == 0.0
+
+
+def test_a_query_enlarged_beyond_max_upscale_is_left_alone(gallery: Path) -> None:
+    small = cv2.resize(hidden_query(print_like(0, (0.8, 0.2, 0.1))), (75, 70), interpolation=cv2.INTER_AREA)
+    # 75 px on the longer side: enlarged 1.33 times to the model's 100 px
+    plain = off_pose_recognizer(4.0, flow_pose="none").enrol(gallery, cache=False).predict(small)
+    skipped = off_pose_recognizer(4.0, flow_pose=FlowPose(mode="always", max_upscale=1.2)).enrol(
+        gallery, cache=False).predict(small)
+    tried = off_pose_recognizer(4.0, flow_pose=FlowPose(mode="always", max_upscale=1.5)).enrol(
+        gallery, cache=False).predict(small)
+    np.testing.assert_array_equal(skipped.H, plain.H)
+    assert skipped.verification == plain.verification and tried.verification < plain.verification
 
 
 def test_a_bad_flow_pose_option_is_a_one_line_error() -> None:
