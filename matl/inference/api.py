@@ -87,7 +87,17 @@ from matl.inference.fast_refine import FastRefiner
 from matl.inference.flow_pose import FlowPose, FlowPoses
 from matl.inference.foreground import ForegroundStep, mask_query
 from matl.inference.gallery import build_gallery
-from matl.inference.images import FLOAT_SLACK, LUMA, MIN_GALLERY_SIDE, _as_rgb, _concat, _grey_u8, _is_grey, _rows
+from matl.inference.images import (
+    FLOAT_SLACK,
+    LUMA,
+    MIN_GALLERY_SIDE,
+    _as_rgb,
+    _concat,
+    _grey_u8,
+    _is_grey,
+    _rows,
+    _upscale,
+)
 from matl.inference.keypoint_pose import KeypointPose, KeypointPoses
 from matl.inference.quantize import calibration_images, quantize_recognizer
 from matl.inference.query_passes import QueryPasses
@@ -318,11 +328,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             return self._built
         if not self._planes:
             raise MatlError("the gallery is empty: enrol(folder) or add(object, plane, image) first")
-        objects = self.objects
-        index = {name: i for i, name in enumerate(objects)}
-        gallery = build_gallery(torch.stack([p.canon_u8 for p in self._planes]),
-                                [index[p.object] for p in self._planes], [p.name for p in self._planes],
-                                objects, self.num_anchors).to(self.device)
+        gallery = build_gallery(torch.stack([p.canon_u8 for p in self._planes]), self._plane_objects(),
+                                [p.name for p in self._planes], self.objects, self.num_anchors).to(self.device)
         features = torch.cat([p.features for p in self._planes]).to(self.device)
         model = self.model
         recognizer = TensorRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
@@ -355,8 +362,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         """``(Q, O)`` distance of each feature to the nearest anchor of every product, and the products."""
         objects = self.objects
         by_plane = self._plane_distances(features)
-        index = {name: i for i, name in enumerate(objects)}  # a dict: list.index per plane is quadratic in the gallery
-        owner = torch.tensor([index[p.object] for p in self._planes])
+        owner = torch.tensor(self._plane_objects())
         out = torch.full((len(features), len(objects)), float("inf"), dtype=torch.float64)
         return out.scatter_reduce(1, owner.expand(len(features), -1), by_plane, reduce="amin"), objects
     # ----------------------------------------------------------------------------- grey queries
@@ -503,8 +509,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                     recognizer, prepared, pred, queries, verification, visibility)
         if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
-            upscale = (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).abs().sqrt()  # model px per file px
-            pred, verification = self._flow_poses(queries, pred, verification, visibility, upscale)
+            pred, verification = self._flow_poses(queries, pred, verification, visibility, _upscale(query_H_file))
         plane = pred.plane_index.cpu()
         canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None

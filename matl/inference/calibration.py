@@ -129,8 +129,7 @@ class OpenSetCalibration:
         with self._lock:
             self._calibration_features()
             features = torch.cat([p.calibration for p in self._planes])
-            index = {name: i for i, name in enumerate(self.objects)}
-            own = torch.tensor([index[p.object] for p in self._planes for _ in range(self.calibration_warps)])
+            own = torch.tensor(self._plane_objects()).repeat_interleave(self.calibration_warps)
             d, objects = self._object_distances(features)               # (M, O)
             # verify: the copies are posed and verified as queries are (against the whole gallery; the
             # impostors against the gallery without their product); verify_or_ratio: the ratio's samples

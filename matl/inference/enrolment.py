@@ -49,6 +49,12 @@ class Enrolment:
         """The enrolled products, in enrolment order."""
         return list(dict.fromkeys(p.object for p in self._planes))
 
+    def _plane_objects(self) -> list[int]:
+        """The product of each enrolled plane as its position in :attr:`objects` (a dict of the names:
+        ``objects.index`` per plane is quadratic in the gallery)."""
+        position: dict[str, int] = {}
+        return [position.setdefault(p.object, len(position)) for p in self._planes]
+
     @property
     def planes(self) -> list[tuple[str, str]]:
         """``(object, plane)`` of every enrolled plane."""

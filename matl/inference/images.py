@@ -144,6 +144,12 @@ def _with_rows(value: Any, rows: list[int], source: Any, source_rows: list[int])
         for f in dataclasses.fields(value) if getattr(value, f.name) is not None})
 
 
+def _upscale(query_H_file: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` how many times each query's file was enlarged to the model's size (model px per file px) from its
+    framing ``model_H_file`` ``(B, 3, 3)`` (a scale and a shift)."""
+    return (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).sqrt()
+
+
 def _query_visibility(prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], size: int, fill: float,
                       device: torch.device) -> torch.Tensor | None:
     """``(B, 1, S, S)`` float in [0, 1]: the mask each query prepared by :func:`mask_query` was multiplied by (the

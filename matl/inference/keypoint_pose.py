@@ -151,7 +151,6 @@ class KeypointPose(StageSettings):
                               method=RANSAC_METHODS[self.method])
 
 
-
 def _smallest_rotation(query_H_canon: torch.Tensor, anchor_H_canon: torch.Tensor) -> tuple[int, torch.Tensor]:
     """Of a plane's ``N`` anchors ``(N, 3, 3)``, the one whose ``query_H_anchor`` turns least (the anchor the STN
     would pick for this pose) and that pose ``(3, 3)`` float64."""
@@ -198,12 +197,11 @@ class KeypointPoses:
                        query_H_file: torch.Tensor, verification: Verification, rows: list[int]
                        ) -> tuple[Prediction, Verification]:
         settings: KeypointPose = self.keypoint_pose
-        objects = {name: o for o, name in enumerate(self.objects)}
         by_object: dict[int, list[int]] = {}
-        for p, plane in enumerate(self._planes):
-            by_object.setdefault(objects[plane.object], []).append(p)
+        for p, o in enumerate(self._plane_objects()):
+            by_object.setdefault(o, []).append(p)
         ranked = {i: [int(pred.object_index[i])] for i in rows}  # the answered product, then the next nearest
-        if settings.products > 1 and pred.features is not None and len(objects) > 1:
+        if settings.products > 1 and pred.features is not None and len(by_object) > 1:
             distances = self._object_distances(pred.features[rows])[0]
             for j, i in enumerate(rows):
                 order = [o for o in torch.argsort(distances[j]).tolist() if o != ranked[i][0]]

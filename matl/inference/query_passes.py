@@ -16,7 +16,7 @@ import torch
 
 from matl.data.image_files import fit_to_model
 from matl.inference.foreground import pose_mask
-from matl.inference.images import _query_visibility, _with_rows
+from matl.inference.images import _query_visibility, _upscale, _with_rows
 from matl.inference.refine import RefinedRecognizer
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
@@ -38,7 +38,7 @@ class QueryPasses:
             queries = torch.stack([f[0] for f in fitted]).to(self.device)
         query_H_file = torch.stack([f[1].model_H_file for f in fitted])
         visibility = _query_visibility(prepared, self.image_size, self.query_fill, self.device)
-        upscale = (query_H_file[:, 0, 0] * query_H_file[:, 1, 1]).sqrt()  # model px per file px
+        upscale = _upscale(query_H_file)
         pred, queries = self._foreground_passes(recognizer, queries, [p[1] for p in prepared],
                                                 [p[2] for p in prepared], visibility, upscale)
         verification = None

@@ -53,6 +53,16 @@ def _refiner(refine: bool | PhotometricRefiner | FastRefiner | None) -> Photomet
     raise MatlError(f"refine={refine!r} is invalid: use true, false, a PhotometricRefiner or a FastRefiner")
 
 
+def _stage(value: Any, settings: type, name: str) -> Any:
+    """A pose stage's option (``keypoint_pose``, ``flow_pose``): a mode's name as the stage's settings with their
+    defaults, or the settings given."""
+    if isinstance(value, str):
+        return settings(mode=value)
+    if not isinstance(value, settings):
+        raise MatlError(f"{name}={value!r} is invalid: use none, unverified, always or a {settings.__name__}")
+    return value
+
+
 def _number(value: Any) -> bool:
     return not isinstance(value, bool) and isinstance(value, (int, float))
 
@@ -127,15 +137,8 @@ class RecognizerOptions:
         self.verify_occluded_copies = float(self.verify_occluded_copies)
         if self.refine_check not in REFINE_CHECKS:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
-        if isinstance(self.keypoint_pose, str):
-            self.keypoint_pose = KeypointPose(mode=self.keypoint_pose)
-        elif not isinstance(self.keypoint_pose, KeypointPose):
-            raise MatlError(f"keypoint_pose={self.keypoint_pose!r} is invalid: use none, unverified, always or a "
-                            "KeypointPose")
-        if isinstance(self.flow_pose, str):
-            self.flow_pose = FlowPose(mode=self.flow_pose)
-        elif not isinstance(self.flow_pose, FlowPose):
-            raise MatlError(f"flow_pose={self.flow_pose!r} is invalid: use none, unverified, always or a FlowPose")
+        self.keypoint_pose = _stage(self.keypoint_pose, KeypointPose, "keypoint_pose")
+        self.flow_pose = _stage(self.flow_pose, FlowPose, "flow_pose")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)
