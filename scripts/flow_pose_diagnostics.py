@@ -1,7 +1,7 @@
 """Where the pose of a partly hidden product goes wrong, and what the flow pose recovers (docs/decisions.md, "the flow
 pose").
 
-    python scripts/flow_pose_diagnostics.py <unseen out>/occluded [--ckpt default] [--true-mask]
+    python scripts/flow_pose_diagnostics.py <unseen out>/occluded [--ckpt pretrained] [--true-mask]
     python scripts/flow_pose_diagnostics.py <unseen out>/<condition> --above 0 0.03 0.05
     python scripts/flow_pose_diagnostics.py <unseen leave_out=0.5 out>/<condition> --verifies none 0.05 0.03
 
@@ -63,8 +63,7 @@ def sweep_above(folder: Path, ckpt: str, values: list[float]) -> None:
     truths = [t for t in truths if not t.get("rgba")]
     for above in values:
         options = {"refine": True, "threshold": None, "flow_pose": FlowPose(mode="always", above=above)}
-        rec = (Recognizer.pretrained(ckpt, **options) if ckpt in ("default", "fast")
-               else Recognizer.from_checkpoint(ckpt, **options)).enrol(folder / "gallery", cache=False)
+        rec = Recognizer.from_checkpoint(ckpt, **options).enrol(folder / "gallery", cache=False)
         right, within, times, sizes = 0, 0, [], {}
         for truth in truths:
             path = folder / truth["image"]
@@ -88,7 +87,7 @@ def sweep_verifies(folder: Path, ckpt: str, values: list[str]) -> None:
     """Enrolled queries answered known and right, left-out ones answered unknown, for each ``verifies``."""
     enrolled = [json.loads(line) for line in (folder / "truth.jsonl").read_text().splitlines()]
     left_out = [json.loads(line) for line in (folder / "truth_left_out.jsonl").read_text().splitlines()]
-    rec = (Recognizer.pretrained(ckpt) if ckpt in ("default", "fast") else Recognizer.from_checkpoint(ckpt))
+    rec = Recognizer.from_checkpoint(ckpt)
     rec.enrol(folder / "gallery")
     for value in values:
         rec.flow_pose = FlowPose(mode="always", verifies=None if value == "none" else float(value))
@@ -101,7 +100,8 @@ def sweep_verifies(folder: Path, ckpt: str, values: list[str]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path)
-    parser.add_argument("--ckpt", default="default", help="a shipped model's name (default, fast) or a checkpoint")
+    parser.add_argument("--ckpt", default="pretrained", help="pretrained, pretrained_fast (the shipped models) or a "
+                        "checkpoint")
     parser.add_argument("--true-mask", action="store_true")
     parser.add_argument("--above", type=float, nargs="+", help="sweep FlowPose.above instead")
     parser.add_argument("--verifies", nargs="+", help="sweep FlowPose.verifies (none or a distance) instead")
@@ -113,8 +113,7 @@ def main() -> None:
         sweep_verifies(args.folder, args.ckpt, args.verifies)
         return
     options = {"refine": True, "threshold": None, "flow_pose": "none"}
-    rec = (Recognizer.pretrained(args.ckpt, **options) if args.ckpt in ("default", "fast")
-           else Recognizer.from_checkpoint(args.ckpt, **options))
+    rec = Recognizer.from_checkpoint(args.ckpt, **options)
     rec.enrol(args.folder / "gallery", cache=False)
     _, gallery = rec._build()
     refiner, templates = rec._candidate_refiner()

@@ -42,10 +42,10 @@ def test_every_mode_reports_shares(diagnostics, folder: Path, capsys: pytest.Cap
     diagnostics.main()
     out = capsys.readouterr().out
     assert out.startswith("right product and plane: ") and "not verified: " in out
-    diagnostics.sweep_above(folder, "default", [0.0])
+    diagnostics.sweep_above(folder, "pretrained", [0.0])
     out = capsys.readouterr().out
     assert out.startswith("above=0.0: rec_acc ") and "(2 RGB queries)" in out
     assert all(0.0 <= x <= 1.0 for x in shares(out)) and len(shares(out)) == 2
-    diagnostics.sweep_verifies(folder, "default", ["none"])
+    diagnostics.sweep_verifies(folder, "pretrained", ["none"])
     out = capsys.readouterr().out
     assert out.startswith("verifies=none: ") and "(2 / 1 queries)" in out and len(shares(out)) == 2
