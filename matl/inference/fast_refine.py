@@ -147,6 +147,9 @@ class FastRefiner:
         match_upscale: a query whose file was enlarged by more than this factor to the model's size is refined
             against its anchor at the query's resolution (None: never).
         cache: anchors at another resolution kept (least recently used dropped beyond it).
+        precompute: a gallery of at most this many anchors has its data computed at enrolment
+            (:meth:`anchor_templates`); a larger one's (a warehouse catalogue: about 0.5 MB an anchor) anchor by anchor
+            when a query first needs it (about 1.5 ms), at most this many kept, least recently used dropped.
         visibility: weigh the anchor's foreground pixels by the query's visibility (its mask) warped into the anchor
             frame; False: every pixel counts fully, whatever the query's mask.
         visibility_band: px (at full resolution; halved per level, at least 1) along the anchor's outline where the
@@ -160,7 +163,7 @@ class FastRefiner:
                  threads: int | None = None, blur: float = 0.0, start: str = "stn", auto_band: int = 1,
                  auto_level: float = 0.1, auto_leak: float = 0.002, auto_from: str = "refined",
                  compare_align: bool = False, match_upscale: float | None = 1.2, cache: int = 4096,
-                 visibility: bool = True, visibility_band: int = 0) -> None:
+                 visibility: bool = True, visibility_band: int = 0, precompute: int = 4096) -> None:
         per_level = [int(i) for i in iterations] if isinstance(iterations, Sequence) and not isinstance(
             iterations, str) else [int(iterations)]
         if not per_level or min(per_level) < 0:
@@ -210,6 +213,9 @@ class FastRefiner:
         self.visibility_band = int(visibility_band)
         self.match_upscale = None if match_upscale is None else float(match_upscale)
         self.cache = int(cache)
+        if isinstance(precompute, bool) or not isinstance(precompute, int) or precompute < 1:
+            raise MatlError(f"refiner.precompute must be an integer >= 1 (anchors), got {precompute!r}")
+        self.precompute = precompute
         self._templates: AnchorTemplates | None = None  # set by prepare()
         self._level_ms: list[float] = []
 
@@ -241,11 +247,18 @@ class FastRefiner:
 
     @torch.no_grad()
     def anchor_templates(self, anchors: torch.Tensor) -> AnchorTemplates:
-        """Everything the refinement needs of ``anchors`` ``(G, 3, H, W)``, computed once per anchor."""
+        """Everything the refinement needs of ``anchors`` ``(G, 3, H, W)``, computed once per anchor: all of it now,
+        or, for more than ``precompute`` anchors, each anchor's when a query first needs it."""
         if anchors.ndim != 4:
             raise MatlError(f"anchors must be (G, C, H, W), got {tuple(anchors.shape)}")
         start = time.perf_counter()
         kernels.warm_up()  # compiled (or loaded from numba's cache) here, at enrolment, not at the first query
+        size = (int(anchors.shape[-2]), int(anchors.shape[-1]))
+        if len(anchors) > self.precompute:
+            auto = self.region == "auto"
+            return AnchorTemplates([None] * len(anchors), size, time.perf_counter() - start,
+                                   [None] * len(anchors) if auto else None, [None] * len(anchors) if auto else None,
+                                   anchors.detach(), keep=self.precompute)
         gray = [image for image, _ in luminance(anchors)]
         fg = (anchors.detach().float().cpu() > FOREGROUND).any(dim=1).numpy().astype(np.float32)
         # region=auto keeps both: the whole frame first, the foreground for queries with something beside the object
@@ -253,8 +266,38 @@ class FastRefiner:
         auto = self.region == "auto"
         foreground = [a[1] for a in per_anchor] if auto else None
         outside = [a[2] for a in per_anchor] if auto else None
-        return AnchorTemplates([a[0] for a in per_anchor], (int(anchors.shape[-2]), int(anchors.shape[-1])),
-                               time.perf_counter() - start, foreground, outside, anchors.detach())
+        return AnchorTemplates([a[0] for a in per_anchor], size, time.perf_counter() - start, foreground, outside,
+                               anchors.detach())
+
+    def _source_anchor(self, image: torch.Tensor
+                       ) -> tuple[list[AnchorLevel], list[AnchorLevel] | None, np.ndarray | None]:
+        """:meth:`_anchor` of one anchor image ``(1, 3, H, W)``."""
+        gray = luminance(image)[0][0]
+        return self._anchor(gray, (image[0] > FOREGROUND).any(dim=0).numpy().astype(np.float32))
+
+    def _at_first_need(self, templates: AnchorTemplates, k: int
+                       ) -> tuple[list[AnchorLevel], list[AnchorLevel] | None, np.ndarray | None]:
+        """Anchor ``k`` of a large gallery: computed now if it is not held, the least recently used dropped beyond
+        ``templates.keep``."""
+        with templates.lock:
+            levels = templates.anchors[k]
+            if levels is not None:
+                templates.computed.move_to_end(k)
+                return (levels, None if templates.foreground is None else templates.foreground[k],
+                        None if templates.outside is None else templates.outside[k])
+        found = self._source_anchor(templates.source[k:k + 1].detach().float().cpu())
+        with templates.lock:
+            templates.anchors[k] = found[0]
+            if templates.foreground is not None:
+                templates.foreground[k], templates.outside[k] = found[1], found[2]
+            templates.computed[k] = None
+            templates.computed.move_to_end(k)
+            while len(templates.computed) > int(templates.keep or 0):
+                old, _ = templates.computed.popitem(last=False)
+                templates.anchors[old] = None
+                if templates.foreground is not None:
+                    templates.foreground[old] = templates.outside[old] = None
+        return found
 
     def _kinds(self) -> tuple[str, ...]:
         return {"frame": ("frame",), "foreground": ("foreground",), "auto": ("frame", "foreground")}[self.region]
@@ -271,6 +314,8 @@ class FastRefiner:
                 and templates.source is not None):
             side = max(4, round(size / float(upscale)))
         if side is None or side >= size:
+            if templates.keep is not None:
+                return self._at_first_need(templates, int(k))
             return (templates.anchors[k], None if templates.foreground is None else templates.foreground[k],
                     None if templates.outside is None else templates.outside[k])
         key = (int(k), side)
@@ -278,9 +323,7 @@ class FastRefiner:
         if found is not None:
             templates.resampled.move_to_end(key)
             return found
-        image = at_resolution(templates.source[k:k + 1].detach().float().cpu(), side)
-        gray = luminance(image)[0][0]
-        found = self._anchor(gray, (image[0] > FOREGROUND).any(dim=0).numpy().astype(np.float32))
+        found = self._source_anchor(at_resolution(templates.source[k:k + 1].detach().float().cpu(), side))
         if self.cache > 0:
             templates.resampled[key] = found
             while len(templates.resampled) > self.cache:

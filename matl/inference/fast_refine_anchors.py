@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -104,13 +105,17 @@ class AnchorTemplates:
     """:class:`~matl.inference.fast_refine.FastRefiner`'s data of a gallery: per anchor, one :class:`AnchorLevel`
     per level, finest first.
 
+    A large gallery's (more anchors than the refiner's ``precompute``) are computed anchor by anchor when a query
+    first needs them (:meth:`~matl.inference.fast_refine.FastRefiner.anchor_levels`): ``anchors[k]`` is None until
+    then, and again once ``k`` is the least recently used of more than ``keep`` computed anchors.
+
     Attributes:
-        anchors: one list of levels per anchor.
+        anchors: one list of levels per anchor (None: not computed, a large gallery's).
         image_size: ``(H, W)`` of the anchors.
-        seconds: time taken to compute them.
+        seconds: time taken to compute them at enrolment.
     """
 
-    anchors: list[list[AnchorLevel]]
+    anchors: list[list[AnchorLevel] | None]
     image_size: tuple[int, int]
     seconds: float = field(default=0.0)
     #: ``region=auto``: per anchor, its ``region=foreground`` levels (None otherwise)
@@ -124,6 +129,11 @@ class AnchorTemplates:
     #: ``(anchor, side) -> (levels, foreground levels, outside)`` of anchors at another resolution, least recently
     #: used first
     resampled: OrderedDict = field(default_factory=OrderedDict, repr=False)
+    #: a large gallery's: at most this many anchors computed at first need are kept (None: all computed at enrolment)
+    keep: int | None = None
+    #: those anchors, least recently used first
+    computed: OrderedDict = field(default_factory=OrderedDict, repr=False)
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def __len__(self) -> int:
         return len(self.anchors)
@@ -131,11 +141,11 @@ class AnchorTemplates:
     @property
     def nbytes(self) -> int:
         """Memory held, bytes."""
-        held = sum(level.nbytes for anchor in self.anchors for level in anchor)
-        held += sum(level.nbytes for anchor in self.foreground or () for level in anchor)
+        held = sum(level.nbytes for anchor in self.anchors if anchor is not None for level in anchor)
+        held += sum(level.nbytes for anchor in self.foreground or () if anchor is not None for level in anchor)
         held += sum(level.nbytes for levels, fg, _ in self.resampled.values() for level in (*levels, *(fg or ())))
         held += sum(out.nbytes for _, _, out in self.resampled.values() if out is not None)
-        return held + sum(mask.nbytes for mask in self.outside or ())
+        return held + sum(mask.nbytes for mask in self.outside or () if mask is not None)
 
 
 def image_pyramid(image: np.ndarray, levels: int, min_size: int) -> list[np.ndarray]:

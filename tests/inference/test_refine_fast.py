@@ -123,6 +123,26 @@ def test_precomputed_anchors_equal_per_query_templates_and_batches_equal_single_
         assert len(refiner.last_level_ms) == 3  # a single query's time per level, finest first
 
 
+def test_a_large_gallery_computes_each_anchor_at_its_first_need_and_keeps_the_latest() -> None:
+    anchors, queries, _, start = scene()
+    gallery_images = torch.cat([textured_planes(3, S, 7), anchors])        # the anchors are entries 3..8
+    index = torch.arange(3, 3 + B)
+    eager = FastRefiner().prepare(gallery_images)
+    lazy = FastRefiner(precompute=4).prepare(gallery_images)              # 9 anchors > 4: none computed yet
+    templates = lazy._templates
+    assert templates is not None and templates.keep == 4 and templates.nbytes == 0
+    assert all(a is None for a in templates.anchors) and len(templates) == 9
+    assert torch.equal(lazy(queries, index, start).query_H_anchor, eager(queries, index, start).query_H_anchor)
+    # the 6 queries' anchors were computed in turn; the last 4 are kept
+    assert list(templates.computed) == [5, 6, 7, 8]
+    assert [a is not None for a in templates.anchors] == [False] * 5 + [True] * 4
+    assert all((f is None) == (a is None) for a, f in zip(templates.anchors, templates.foreground, strict=True))
+    assert 0 < templates.nbytes < eager._templates.nbytes
+    again = lazy(queries[:1], index[:1], start[:1])                       # anchor 3 again: computed anew
+    assert torch.equal(again.query_H_anchor, eager(queries[:1], index[:1], start[:1]).query_H_anchor)
+    assert list(templates.computed) == [6, 7, 8, 3]
+
+
 def test_iterations_per_level_and_zero_iterations_keep_the_start() -> None:
     anchors, queries, true, start = scene()
     none = FastRefiner(iterations=0).refine_images(queries, anchors, start)
@@ -179,7 +199,7 @@ def test_fast_refiner_options_are_one_line_errors() -> None:
                    {"region": "all"}, {"start": "none"}, {"erode": -1}, {"threads": 0}, {"blur": -1.0},
                    {"auto_band": -1}, {"auto_leak": -0.1}, {"auto_level": -1.0}, {"auto_from": "stn"},
                    {"compare_align": "yes"}, {"match_upscale": 0.5}, {"match_upscale": True}, {"cache": -1},
-                   {"visibility": 1}):
+                   {"visibility": 1}, {"precompute": 0}, {"precompute": 2.5}):
         with pytest.raises(MatlError, match="refiner"):
             FastRefiner(**kwargs)
     with pytest.raises(MatlError, match="prepare"):
