@@ -29,14 +29,18 @@ CALIBRATION_PREFIX = ".matl_calibration_"
 
 #: ``verify_occluded_copies``: the hidden share of the plane under a copy's bar, uniform in this range
 CALIBRATION_HIDDEN = (0.1, 0.5)
+#: planes whose copies are embedded, posed and verified at a time: the calibration's memory stays that of so many
+#: copies however large the gallery (a warehouse catalogue's copies alone would take gigabytes)
+CALIBRATION_PLANES = 256
 
 
-def _occluded_copies(images: torch.Tensor, names: list[str], every: int
+def _occluded_copies(images: torch.Tensor, names: list[str], every: int, first: int = 0
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The calibration's copies ``(P * W, 3, S, S)`` (plane-major, ``names`` one per plane) with a bar across one in
     ``every`` of each plane's (:data:`CALIBRATION_HIDDEN` of the plane hidden), drawn grey (a mask that kept the
     occluder) or set to 0 and out of the visibility (a mask that left it out) by turns; the copies' visibility
-    ``(P * W, 1, S, S)`` and the rows changed.
+    ``(P * W, 1, S, S)`` and the rows changed. ``first``: the gallery position of the first of ``names`` (the turns
+    run over the whole gallery, so a gallery taken in parts gets the copies it gets whole).
 
     A bar is a band across the whole frame at a random angle whose two edges are quantiles of the plane's pixels
     projected on its normal, so it hides the drawn share of the plane; its grey level is uniform in [0.15, 0.85]
@@ -64,7 +68,7 @@ def _occluded_copies(images: torch.Tensor, names: list[str], every: int
             start = float(draws[2]) * (1.0 - share)
             edges = torch.quantile(along[plane], torch.tensor([start, start + share], dtype=torch.float64))
             bar = ((along >= edges[0]) & (along <= edges[1])).to(images.device)
-            if (p + j // every) % 2 == 0:
+            if (first + p + j // every) % 2 == 0:
                 out[row][:, bar] = 0.15 + 0.7 * float(draws[3])
             else:
                 out[row][:, bar] = 0.0
@@ -125,36 +129,45 @@ class OpenSetCalibration:
         return ratio
 
     def calibration(self) -> dict[str, torch.Tensor]:
-        """Genuine and impostor samples of the open-set statistic (see the module docstring)."""
+        """Genuine and impostor samples of the open-set statistic (see the module docstring), the planes'
+        copies taken :data:`CALIBRATION_PLANES` planes at a time."""
         with self._lock:
             self._calibration_features()
-            features = torch.cat([p.calibration for p in self._planes])
-            own = torch.tensor(self._plane_objects()).repeat_interleave(self.calibration_warps)
-            d, objects = self._object_distances(features)               # (M, O)
-            # verify: the copies are posed and verified as queries are (against the whole gallery; the
-            # impostors against the gallery without their product); verify_or_ratio: the ratio's samples
-            images = (self._calibration_images(self._planes)
-                      if self.open_set_statistic == "verify" and self._verifying() else None)
-            visibility = None
-            share = self.verify_occluded_copies
-            if images is not None and self.verify_statistic == "patches" and share > 0:  # some copies partly hidden
-                images, visibility, rows = _occluded_copies(images, [f"{p.object}/{p.name}" for p in self._planes],
-                                                            max(1, round(1.0 / share)))
-                inner = self._gallery_recognizer()
-                features = features.clone()
-                features[rows] = torch.cat([inner.embed_queries(images[rows[i:i + 256]])[0].float().cpu()
-                                            for i in range(0, len(rows), 256)])
-                d, objects = self._object_distances(features)
-            ranked = d.sort(1).values
-            genuine_ok = None if images is None else self._verify(images, visibility=visibility).verified
-            genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
-            impostor = torch.zeros(0, dtype=torch.float64)
-            if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
-                impostor_ok = None if images is None else self._verify(images, None, own.to(self.device),
-                                                                       visibility=visibility).verified
-                others = d.scatter(1, own[:, None], float("inf")).sort(1).values
-                impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
-            return {"genuine": genuine, "impostor": impostor}
+            owners = torch.tensor(self._plane_objects())
+            parts = [self._calibration_part(start, owners)
+                     for start in range(0, len(self._planes), CALIBRATION_PLANES)]
+            return {name: torch.cat([part[name] for part in parts]) for name in ("genuine", "impostor")}
+
+    def _calibration_part(self, first: int, owners: torch.Tensor) -> dict[str, torch.Tensor]:
+        """:meth:`calibration`'s samples of the copies of planes ``first`` to ``first + CALIBRATION_PLANES``."""
+        planes = self._planes[first:first + CALIBRATION_PLANES]
+        features = torch.cat([p.calibration for p in planes])
+        own = owners[first:first + len(planes)].repeat_interleave(self.calibration_warps)
+        d, objects = self._object_distances(features)               # (M, O)
+        # verify: the copies are posed and verified as queries are (against the whole gallery; the
+        # impostors against the gallery without their product); verify_or_ratio: the ratio's samples
+        images = (self._calibration_images(planes)
+                  if self.open_set_statistic == "verify" and self._verifying() else None)
+        visibility = None
+        share = self.verify_occluded_copies
+        if images is not None and self.verify_statistic == "patches" and share > 0:  # some copies partly hidden
+            images, visibility, rows = _occluded_copies(images, [f"{p.object}/{p.name}" for p in planes],
+                                                        max(1, round(1.0 / share)), first)
+            inner = self._gallery_recognizer()
+            features = features.clone()
+            features[rows] = torch.cat([inner.embed_queries(images[rows[i:i + 256]])[0].float().cpu()
+                                        for i in range(0, len(rows), 256)])
+            d, objects = self._object_distances(features)
+        ranked = d.sort(1).values
+        genuine_ok = None if images is None else self._verify(images, visibility=visibility).verified
+        genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
+        impostor = torch.zeros(0, dtype=torch.float64)
+        if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
+            impostor_ok = None if images is None else self._verify(images, None, own.to(self.device),
+                                                                   visibility=visibility).verified
+            others = d.scatter(1, own[:, None], float("inf")).sort(1).values
+            impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
+        return {"genuine": genuine, "impostor": impostor}
 
     @property
     def threshold(self) -> float | None:

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from matl import Recognizer
+from matl.inference import calibration
 from matl.inference.calibration import CALIBRATION_HIDDEN, _occluded_copies, calibrate_open_set
 from matl.utils.errors import MatlError
 from tests.inference.test_api import read_rgb, stub_recognizer
@@ -55,6 +56,26 @@ def test_the_calibration_is_kept_by_save_and_beside_an_enrolled_folder(tmp_path:
     cv2.imwrite(str(gallery / "red_box" / "front.png"), read_rgb(queries / "red_box.png")[..., ::-1])
     edited = stub_recognizer().enrol(gallery)
     assert edited.threshold is not None and len(computed) == 4 and computed[-1] != computed[0]
+
+
+def test_a_gallery_calibrated_in_parts_gets_the_samples_it_gets_whole(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    gallery, _, _ = make_files(tmp_path)
+    rec = stub_recognizer(verify_occluded_copies=0.5).enrol(gallery, cache=False)
+    whole = rec.calibration()
+    monkeypatch.setattr(calibration, "CALIBRATION_PLANES", 1)  # each plane's copies on their own
+    parts = rec.calibration()
+    assert len(rec.planes) > 1 and len(whole["genuine"]) == len(rec.planes) * rec.calibration_warps
+    for name in ("genuine", "impostor"):
+        assert torch.equal(parts[name], whole[name])
+    # the occluded copies take their turns over the whole gallery, not per part
+    images = torch.rand(4 * 2, 3, 16, 16)
+    names = ["a/front", "b/back", "c/top", "d/left"]
+    out, visibility, _ = _occluded_copies(images, names, 1)
+    for first in range(4):
+        rows = slice(2 * first, 2 * first + 2)
+        part = _occluded_copies(images[rows], names[first:first + 1], 1, first)
+        assert torch.equal(part[0], out[rows]) and torch.equal(part[1], visibility[rows])
 
 
 def test_the_calibration_copies_are_partly_occluded() -> None:
