@@ -111,13 +111,13 @@ class OpenSetCalibration:
     def _calibration_features(self) -> None:
         """Features of warped copies of every plane that has none yet (the training warps; once per plane)."""
         missing = [p for p in self._planes if p.calibration is None]
-        if not missing:
-            return
-        images = self._calibration_images(missing)
-        inner = self._gallery_recognizer()
-        features = torch.cat([inner.embed_queries(images[i:i + 256])[0] for i in range(0, len(images), 256)])
-        for plane, chunk in zip(missing, features.float().cpu().split(self.calibration_warps), strict=True):
-            plane.calibration = chunk
+        inner = self._gallery_recognizer() if missing else None
+        for start in range(0, len(missing), CALIBRATION_PLANES):  # so many planes' copies in memory at a time
+            planes = missing[start:start + CALIBRATION_PLANES]
+            images = self._calibration_images(planes)
+            features = torch.cat([inner.embed_queries(images[i:i + 256])[0] for i in range(0, len(images), 256)])
+            for plane, chunk in zip(planes, features.float().cpu().split(self.calibration_warps), strict=True):
+                plane.calibration = chunk
 
     def _statistic(self, nearest: torch.Tensor, second: torch.Tensor,
                    verified: torch.Tensor | None = None) -> torch.Tensor:
