@@ -7,9 +7,9 @@ image files, without retraining (paper Sec. 2.1). A thin user of the Python API
 1. *Enrol*: every ``<gallery>/<object>/<plane>.{png,jpg,jpeg}`` is loaded, resized with its aspect
    kept and centre-padded with 0 to the checkpoint's model size (:mod:`matl.data.image_files`),
    rotated into the checkpoint's ``N`` fixed anchors, and embedded once by ``c()``. The features are
-   cached next to the gallery in ``.matl_gallery_<ckpt>_<files>.pt`` (plain tensors, loads with
-   ``weights_only=True``), keyed by the checkpoint's sha256 and every file's path, mtime and size,
-   so adding, removing or editing a file refreshes it.
+   cached next to the gallery in ``.matl_gallery_<ckpt>_<settings>/``, one file per product (plain tensors,
+   loads with ``weights_only=True``), keyed by the checkpoint's sha256 and the path, mtime and size of
+   its files, so adding, removing or editing a product embeds that product alone.
 2. *Predict*: query files of any size go through the same resize/pad, in batches; the recognizer
    returns the nearest anchor and the model-frame pose, which is re-expressed in the original pixel
    coordinates of the gallery file and of the query file. A query farther than ``threshold`` from

@@ -2,9 +2,10 @@
 
 Every canonical image file is loaded, resized with its aspect kept and centre-padded to the model
 size (:mod:`matl.data.image_files`), rotated into the checkpoint's ``N`` fixed anchors and embedded
-once by ``c()``. The features are cached next to the gallery in ``.matl_gallery_<ckpt>_<files>.pt``
-(plain tensors, loaded with ``weights_only=True``), keyed by the checkpoint's sha256 and every file's
-path, mtime and size, so adding, removing or editing a file refreshes it.
+once by ``c()``. The features are cached next to the gallery, one file per product in
+``.matl_gallery_<ckpt>_<settings>/<object>.pt`` (plain tensors, loaded with ``weights_only=True``), each keyed by
+the checkpoint's sha256, the enrolment settings and the path, mtime and size of every file of its product: adding,
+removing or editing a product embeds that product alone, and an interrupted enrolment keeps the products it wrote.
 """
 
 from __future__ import annotations
@@ -13,11 +14,16 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from torch import nn
 
 from matl.data.gallery import Gallery
@@ -29,9 +35,10 @@ from matl.utils.io import atomic_write
 
 log = logging.getLogger(__name__)
 
-CACHE_FORMAT = 1  # bump when the cache's content or meaning changes: old files then miss the key
+CACHE_FORMAT = 2  # bump when the cache's content or meaning changes: old files then miss the key (2: per product)
 CACHE_PREFIX = ".matl_gallery_"
 BUILD_PLANES = 256  # planes warped into anchors at a time (build_gallery)
+ENROL_PLANES = 256  # planes loaded, embedded and written to the cache at a time (enrol_gallery)
 
 
 # ---------------------------------------------------------------------------------------- gallery
@@ -45,7 +52,7 @@ class EnrolledGallery:
         canon_H_file: ``(P, 3, 3)`` float64, gallery-file pixel -> canonical model-frame pixel.
         file_sizes: ``(P, 2)`` int64 ``(height, width)`` of each canonical image file.
         paths: ``(P,)`` the canonical image file of each plane.
-        cache_file: the feature cache used or written, if any.
+        cache_file: the folder of the features' cache (one file per product), if it was used and is writable.
         canon_u8: ``(P, 3, S, S)`` uint8 canonical images at model size (the anchors are their rotations).
     """
 
@@ -63,26 +70,36 @@ def report_skipped(path: Path, reason: str) -> None:
     log.warning("skipped %s: %s", path, reason)
 
 
-def _load_planes(files: GalleryFiles, size: int,
-                 fill: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[int]]:
-    """Load and fit every plane file; unusable files are reported and dropped.
+def _load_plane(path: Path, size: int, fill: float) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]] | str:
+    """One plane file loaded and fitted: ``(uint8 (3, S, S) canonical image, (3, 3) canon_H_file, (height, width))``
+    (quantised like the catalogs' canonical sets, so the cached and uncached paths see identical pixels), or why it
+    is unusable."""
+    try:
+        original = load_image_file(path)
+        image, fit = fit_to_model(original, size, fill)
+    except ImageFileError as error:
+        return str(error).removeprefix(f"{path}: ")
+    return (image * 255.0).round().to(torch.uint8), fit.model_H_file, tuple(original.shape[:2])
+
+
+def _load_planes(paths: list[Path], size: int, fill: float, pool: ThreadPoolExecutor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[int]]:
+    """Load and fit plane files (decoded on ``pool``'s threads when given); unusable files are reported and dropped.
 
     Returns:
-        uint8 ``(P', 3, S, S)`` canonical images (quantised like the catalogs' canonical sets, so the
-        cached and uncached paths see identical pixels), ``(P', 3, 3)`` ``canon_H_file``, ``(P', 2)``
-        file ``(height, width)`` and the indices of the kept planes into ``files.paths``.
+        uint8 ``(P', 3, S, S)`` canonical images, ``(P', 3, 3)`` ``canon_H_file``, ``(P', 2)`` file
+        ``(height, width)`` and the positions of the kept files in ``paths``.
     """
+    loaded = (pool.map(_load_plane, paths, [size] * len(paths), [fill] * len(paths)) if pool is not None
+              else (_load_plane(path, size, fill) for path in paths))
     images, matrices, sizes, kept = [], [], [], []
-    for i, path in enumerate(files.paths):
-        try:
-            original = load_image_file(path)
-            image, fit = fit_to_model(original, size, fill)
-        except ImageFileError as error:
-            report_skipped(path, str(error).removeprefix(f"{path}: "))
+    for i, (path, plane) in enumerate(zip(paths, loaded, strict=True)):
+        if isinstance(plane, str):
+            report_skipped(path, plane)
             continue
-        images.append((image * 255.0).round().to(torch.uint8))
-        matrices.append(fit.model_H_file)
-        sizes.append(original.shape[:2])
+        images.append(plane[0])
+        matrices.append(plane[1])
+        sizes.append(plane[2])
         kept.append(i)
     if not images:
         return (torch.zeros(0, 3, size, size, dtype=torch.uint8), torch.zeros(0, 3, 3, dtype=torch.float64),
@@ -90,13 +107,15 @@ def _load_planes(files: GalleryFiles, size: int,
     return torch.stack(images), torch.stack(matrices), torch.tensor(sizes, dtype=torch.long), kept
 
 
-def _cache_file(root: Path, key: dict[str, Any]) -> Path:
-    key_json = json.dumps(key, sort_keys=True)
-    files_digest = hashlib.sha256(key_json.encode()).hexdigest()[:16]
-    return root / f"{CACHE_PREFIX}{key['checkpoint'][:16]}_{files_digest}.pt"
+def _cache_folder(root: Path, settings: dict[str, Any]) -> Path:
+    """``<root>/.matl_gallery_<checkpoint>_<settings>``: one file per product inside."""
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    return root / f"{CACHE_PREFIX}{settings['checkpoint'][:16]}_{digest}"
 
 
 def _read_cache(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
+    """A product's cache file, or None where it is missing, unreadable (reported) or made from other files or
+    settings (its key)."""
     if not path.is_file():
         return None
     try:
@@ -109,20 +128,27 @@ def _read_cache(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
     return payload
 
 
-def _write_cache(path: Path, payload: dict[str, Any]) -> None:
-    """Atomic write (:func:`matl.utils.io.atomic_write`); stale caches of the same checkpoint are
-    removed. A read-only gallery folder only costs a warning."""
+def _write_cache(path: Path, payload: dict[str, Any]) -> bool:
+    """Atomic write (:func:`matl.utils.io.atomic_write`); False (with a warning) where the folder is read-only."""
     try:
+        path.parent.mkdir(exist_ok=True)
         with atomic_write(path, "wb") as f:
             torch.save(payload, f)
     except OSError as error:
         log.warning("cannot write the gallery cache %s (%s); features will be recomputed next time", path, error)
-        return
-    same_checkpoint = path.name[:len(CACHE_PREFIX) + 16]
-    for old in path.parent.glob(f"{same_checkpoint}_*.pt"):
-        if old != path:
-            with contextlib.suppress(OSError):
+        return False
+    return True
+
+
+def _drop_stale(folder: Path, products: set[str], checkpoint: str) -> None:
+    """Remove the cache files of products no longer in the gallery, and the single-file caches of this checkpoint
+    that an earlier cache format wrote."""
+    with contextlib.suppress(OSError):
+        for old in folder.glob("*.pt"):
+            if old.stem not in products:
                 old.unlink()
+        for old in folder.parent.glob(f"{CACHE_PREFIX}{checkpoint[:16]}_*.pt"):
+            old.unlink()
 
 
 def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: list[str],
@@ -146,8 +172,14 @@ def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: 
 
 
 def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: int, num_anchors: int,
-                  fill: float = 1.0, cache_tag: str | None = None, batch_size: int = 256) -> EnrolledGallery:
-    """Enrol ``<root>/<object>/<plane>.png`` files into a gallery, features cached when ``cache_tag`` is set.
+                  fill: float = 1.0, cache_tag: str | None = None, batch_size: int = 256,
+                  progress: bool | None = None) -> EnrolledGallery:
+    """Enrol ``<root>/<object>/<plane>.png`` files into a gallery, features cached per product when ``cache_tag``
+    is set.
+
+    Products whose files and settings match their cache file are read from it; the others are loaded (files
+    decoded on every core), embedded and written :data:`ENROL_PLANES` planes at a time, so an interrupted
+    enrolment keeps what it finished and a grown gallery embeds only its new or edited products.
 
     Args:
         root: the gallery folder.
@@ -157,47 +189,113 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
         fill: see :func:`matl.data.image_files.fit_geometry`.
         cache_tag: the checkpoint's sha256; None disables the on-disk cache.
         batch_size: images per ``c()`` call.
+        progress: a progress bar over the products to embed (None: on a terminal, for more than
+            :data:`ENROL_PLANES` planes).
     Raises:
         MatlError: no folder, or no usable image in it.
     """
+    started = time.perf_counter()
     files = scan_gallery(root)
     for path, reason in files.skipped:
         report_skipped(path, reason)
     layout = f"{files.root}/<object>/<plane>.png"
     if not files.paths:
         raise MatlError(f"gallery={files.root} holds no canonical images: expected {layout}")
-    key = None if cache_tag is None else {
-        "format": CACHE_FORMAT, "checkpoint": cache_tag, "image_size": int(image_size),
-        "num_anchors": int(num_anchors), "fill": float(fill), "anchors": "fixed", "files": files.fingerprint()}
-    cache_path = None if key is None else _cache_file(files.root, key)
-    payload = None if cache_path is None else _read_cache(cache_path, key)
-    if payload is not None:
-        log.info("gallery features loaded from %s", cache_path)
-        canon_u8, canon_H_file, file_sizes = payload["images"], payload["canon_H_file"], payload["file_sizes"]
-        kept = [int(i) for i in payload["kept"]]
-    else:
-        canon_u8, canon_H_file, file_sizes, kept = _load_planes(files, image_size, fill)
+    planes_of: list[list[int]] = [[] for _ in files.object_names]
+    for i, o in enumerate(files.plane_object):
+        planes_of[o].append(i)
+    settings = {"format": CACHE_FORMAT, "checkpoint": cache_tag, "image_size": int(image_size),
+                "num_anchors": int(num_anchors), "fill": float(fill), "anchors": "fixed"}
+    caching = cache_tag is not None and feature_net is not None
+    folder = _cache_folder(files.root, settings) if caching else None
+    prints = _product_fingerprints(files) if caching else None
+    products: list[dict[str, Any] | None] = [None] * len(files.object_names)
+    if folder is not None:
+        for o, name in enumerate(files.object_names):
+            products[o] = _read_cache(folder / f"{name}.pt", {**settings, "files": prints[name]})
+    missing = [o for o, payload in enumerate(products) if payload is None]
+    writable = folder is not None
+    show = progress if progress is not None else (sys.stderr.isatty() and sum(len(planes_of[o]) for o in missing)
+                                                  > ENROL_PLANES)
+    columns = (TextColumn("[bold]enrol"), BarColumn(), MofNCompleteColumn(), TextColumn("products"),
+               TimeElapsedColumn(), TimeRemainingColumn())
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool, Progress(*columns, disable=not show,
+                                                                             transient=True) as bar:
+        task = bar.add_task("enrol", total=len(missing))
+        for part in _parts(missing, planes_of, ENROL_PLANES):
+            paths = [files.paths[i] for o in part for i in planes_of[o]]
+            canon_u8, canon_H_file, file_sizes, kept = _load_planes(paths, image_size, fill, pool)
+            features = None
+            if feature_net is not None and kept:
+                anchors = build_gallery(canon_u8, [0] * len(kept), ["p"] * len(kept), ["o"], num_anchors)
+                features = _embed(feature_net, anchors.images, batch_size)
+            owner = [o for o in part for _ in planes_of[o]]  # the product of each loaded file
+            first = 0
+            for o in part:
+                rows = [j for j, k in enumerate(kept) if owner[k] == o]  # this product's kept planes
+                local = [kept[j] - first for j in rows]
+                first += len(planes_of[o])
+                anchors_of = torch.tensor([j * num_anchors + a for j in rows for a in range(num_anchors)],
+                                          dtype=torch.long)
+                payload = {"images": canon_u8[rows].clone(), "canon_H_file": canon_H_file[rows].clone(),
+                           "file_sizes": file_sizes[rows].clone(), "kept": torch.tensor(local, dtype=torch.long),
+                           "features": None if features is None else features[anchors_of].clone()}
+                products[o] = payload
+                if writable:
+                    name = files.object_names[o]
+                    writable = _write_cache(folder / f"{name}.pt", {
+                        "key": json.dumps({**settings, "files": prints[name]}, sort_keys=True), **payload})
+            bar.advance(task, len(part))
+    if folder is not None and writable:
+        _drop_stale(folder, set(files.object_names), cache_tag)
+    kept = [planes_of[o][int(j)] for o, payload in enumerate(products) for j in payload["kept"]]
     if not kept:
         raise MatlError(f"gallery={files.root} holds no usable image (all were skipped): expected {layout}")
+    used = [p for p in products if len(p["kept"])]  # a product whose every file was skipped adds nothing
+    canon_u8 = torch.cat([p["images"] for p in used])
+    canon_H_file = torch.cat([p["canon_H_file"] for p in used])
+    file_sizes = torch.cat([p["file_sizes"] for p in used])
+    features = None if feature_net is None else torch.cat([p["features"] for p in used])
     # objects whose every plane was skipped disappear; the others are re-indexed densely
     used_objects = sorted({files.plane_object[i] for i in kept})
     remap = {o: j for j, o in enumerate(used_objects)}
     gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
-                             [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
-                             num_anchors)
-    features = None
-    if payload is not None:
-        features = payload["features"]
-    elif feature_net is not None:
-        first = next(iter(feature_net.parameters()), None)
-        device = first.device if first is not None else torch.device("cpu")
-        features = embed(feature_net, gallery.images.to(device), batch_size).cpu()
-        if cache_path is not None:
-            _write_cache(cache_path, {"key": json.dumps(key, sort_keys=True), "images": canon_u8,
-                                      "canon_H_file": canon_H_file, "file_sizes": file_sizes,
-                                      "kept": torch.tensor(kept, dtype=torch.long), "features": features})
-    log.info("gallery: %d objects, %d planes, %d anchors", len(gallery.object_names), len(kept), len(gallery))
-    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept], cache_path,
-                           canon_u8)
+                            [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
+                            num_anchors)
+    log.info("gallery: %d objects, %d planes, %d anchors (%d products read from the cache, %d enrolled; %.1f s)",
+             len(gallery.object_names), len(kept), len(gallery), len(products) - len(missing), len(missing),
+             time.perf_counter() - started)
+    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept],
+                           folder if writable else None, canon_u8)
+
+
+def _product_fingerprints(files: GalleryFiles) -> dict[str, list[tuple[str, int, int]]]:
+    """Each product folder's part of :meth:`GalleryFiles.fingerprint` (its files, used or skipped)."""
+    out: dict[str, list[tuple[str, int, int]]] = {name: [] for name in files.object_names}
+    for row in files.fingerprint():
+        parts = Path(row[0]).parts
+        if len(parts) > 1 and parts[0] in out:
+            out[parts[0]].append(row)
+    return out
+
+
+def _parts(products: list[int], planes_of: list[list[int]], most: int) -> list[list[int]]:
+    """``products`` in consecutive groups of at most ``most`` planes (a product with more is a group alone)."""
+    groups: list[list[int]] = []
+    count = 0
+    for o in products:
+        n = len(planes_of[o])
+        if not groups or count + n > most:
+            groups.append([])
+            count = 0
+        groups[-1].append(o)
+        count += n
+    return groups
+
+
+def _embed(feature_net: nn.Module, images: torch.Tensor, batch_size: int) -> torch.Tensor:
+    first = next(iter(feature_net.parameters()), None)
+    device = first.device if first is not None else torch.device("cpu")
+    return embed(feature_net, images.to(device), batch_size).cpu()
 
 

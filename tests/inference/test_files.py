@@ -118,23 +118,30 @@ def test_predict_end_to_end_with_tiny_checkpoint(tiny_run: Path, tmp_path: Path,
         assert record["H"][2][2] == pytest.approx(1.0)
     assert len(list((tmp_path / "run" / "viz").glob("*.png"))) == 3
 
-    # features cached next to the gallery, loadable safely; reused, and refreshed when a file changes
-    caches = list(gallery.glob(".matl_gallery_*.pt"))
-    assert len(caches) == 1
-    payload = torch.load(caches[0], weights_only=True)
-    assert payload["features"].shape[0] == 5 * 4
+    # features cached next to the gallery, one file per product, loadable safely; reused, and a product whose file
+    # changed enrolled again alone
+    folders = list(gallery.glob(".matl_gallery_*"))
+    assert len(folders) == 1 and folders[0].is_dir()
+    caches = sorted(folders[0].glob("*.pt"))
+    assert [c.stem for c in caches] == sorted(p.name for p in gallery.iterdir() if p.is_dir() and p.name in COLOURS)
+    payloads = {c.stem: torch.load(c, weights_only=True) for c in caches}
+    assert sum(p["features"].shape[0] for p in payloads.values()) == 5 * 4
     caplog.clear()
     with caplog.at_level(logging.INFO):
         predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["batch_size=2", "overwrite=true"]))
-    assert any("gallery features loaded from" in r.getMessage() for r in caplog.records)
+    assert any(f"{len(caches)} products read from the cache, 0 enrolled" in r.getMessage() for r in caplog.records)
     assert any("open-set calibration loaded from" in r.getMessage() for r in caplog.records)  # kept, not redone
     # same answers from the cached features
     assert (tmp_path / "out" / "pred.jsonl").read_text().splitlines() == lines
     stat = (gallery / "red_box" / "front.png").stat()
     os.utime(gallery / "red_box" / "front.png", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
-    predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["overwrite=true"]))
-    refreshed = list(gallery.glob(".matl_gallery_*.pt"))
-    assert len(refreshed) == 1 and refreshed != caches
+    written = {c.stem: c.stat().st_mtime_ns for c in caches}
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        predict(predict_cfg(tmp_path, ckpt, gallery, queries, ["overwrite=true"]))
+    assert any(f"{len(caches) - 1} products read from the cache, 1 enrolled" in r.getMessage()
+               for r in caplog.records)
+    assert [c.stem for c in caches if c.stat().st_mtime_ns != written[c.stem]] == ["red_box"]
 
     # a single file works too
     single = predict(predict_cfg(tmp_path, ckpt, gallery, queries / "red_box.png", ["cache=false", "overwrite=true"]))
