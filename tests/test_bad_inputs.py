@@ -467,6 +467,14 @@ def gallery_file(ctx: Ctx) -> Path:
     return ctx.tmp / "gallery.pt"
 
 
+def enrol_cli(args: list[str]) -> Callable[[Ctx], Any]:
+    """``python -m matl.enrol`` on a good gallery with ``args``."""
+    def run(ctx: Ctx) -> subprocess.CompletedProcess:
+        gallery = good_gallery(ctx.tmp / "gallery")
+        return run_cli(ctx, "matl.enrol", [f"ckpt={ctx.checkpoint()}", f"gallery={gallery}", *args])
+    return run
+
+
 def predict_cli_ckpt(ckpt: Callable[[Ctx], Path]) -> Callable[[Ctx], Any]:
     def run(ctx: Ctx) -> subprocess.CompletedProcess:
         gallery, queries = good_gallery(ctx.tmp / "gallery"), png(ctx.tmp / "q" / "q.png", colour())
@@ -614,6 +622,11 @@ CASES = [
     call("gallery: empty folder", gallery_case(lambda p: (p.mkdir(), p)[1]), "holds no canonical images"),
     call("gallery: images not inside object folders", gallery_case(loose_files_gallery), "holds no canonical images"),
     call("gallery: only unreadable images", gallery_case(unreadable_gallery), "holds no usable image"),
+    call("enrol: gallery= missing", lambda ctx: run_cli(ctx, "matl.enrol", []), "gallery=... is required"),
+    call("enrol: shard=2 of shards=2", enrol_cli(["shard=2", "shards=2"]), "shard=2 is invalid"),
+    call("enrol: shards=0", enrol_cli(["shards=0"]), "shards=0 is invalid"),
+    call("enrol: shard= with save= (a shard fills the cache only)", enrol_cli(["shard=0", "shards=2", "save=g.pt"]),
+         "shard= fills the gallery's cache only"),
     # --- checkpoints
     call("checkpoint: missing file (predict)", predict_with_checkpoint(lambda c: c.tmp / "missing.ckpt"), "not found"),
     call("checkpoint: missing file (eval ckpt=)", eval_with(lambda c: c.tmp / "missing.ckpt"), "not found"),

@@ -119,7 +119,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 def test_every_command_is_an_entry_point() -> None:
-    commands = {"train", "eval", "predict", "render", "report", "score", "unseen", "bench", "export",
+    commands = {"train", "eval", "predict", "enrol", "render", "report", "score", "unseen", "bench", "export",
                 "train_foreground"}
     assert {name.split(".")[1] for name in ENTRY_POINTS} == commands
 

@@ -16,7 +16,7 @@ from typing import Any, Self
 import torch
 
 from matl.data.image_files import fit_to_model
-from matl.inference.gallery import build_gallery, enrol_gallery, report_skipped
+from matl.inference.gallery import build_gallery, cache_gallery_shard, enrol_gallery, report_skipped
 from matl.inference.images import MIN_GALLERY_SIDE, _as_rgb, _check_name, _gallery_image_problem
 from matl.models.recognizer import embed
 from matl.utils.errors import MatlError
@@ -99,6 +99,15 @@ class Enrolment:
             folder_of_cache = enrolled.cache_file.parent if cache and enrolled.cache_file is not None else None
             self._calibration_folder = None if folder_of_cache is None else (folder_of_cache, [id(p) for p in added])
         return self
+
+    def enrol_shard(self, folder: str | Path, shard: int, shards: int) -> tuple[int, int]:
+        """Fill one shard of a gallery folder's per-product feature cache, without enrolling it here: the products
+        ``shard``, ``shard + shards``, ... of its sorted product folders (shards run in separate processes or hosts
+        sharing the folder; :meth:`enrol` afterwards reads every product from the cache). Returns ``(products of the
+        shard, of those embedded now)``."""
+        with self._lock:
+            return cache_gallery_shard(folder, self.model.feature_net, self.image_size, self.num_anchors,
+                                       self.gallery_fill, self.model_id, shard, shards)
 
     def add(self, object: str, plane: str, image: Any) -> Self:
         """Enrol one canonical image (a path, an HxWx3/HxWx4 array or a (3|4, H, W) tensor) as ``object/plane``.

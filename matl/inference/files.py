@@ -30,6 +30,7 @@ from matl.models.prediction import Prediction
 from matl.utils.config import validate_config
 from matl.utils.errors import MatlError
 from matl.utils.instantiate import instantiate_node
+from matl.utils.io import write_json
 
 log = logging.getLogger(__name__)
 
@@ -216,6 +217,73 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     return recognizer
 
 
+def _resolve_model(cfg: DictConfig) -> None:
+    """``cfg.ckpt`` made a checkpoint path: null is the model shipped in the package, ``pretrained`` /
+    ``pretrained_fast`` a shipped model by name."""
+    from omegaconf import open_dict
+
+    from matl.models import checkpoint
+
+    if cfg.get("ckpt") in (None, ""):
+        if not checkpoint.PRETRAINED.is_file():
+            raise MatlError(f"ckpt=... is required: no pretrained model ships with this install "
+                            f"({checkpoint.PRETRAINED} is missing); train one (python -m matl.train) and pass its "
+                            "checkpoints/best.ckpt")
+        with open_dict(cfg):
+            cfg.ckpt = str(checkpoint.PRETRAINED)
+    else:
+        checkpoint.resolve_ckpt_option(cfg)
+
+
+def enrol(cfg: DictConfig) -> dict[str, Any]:
+    """Run enrol for a composed ``conf/enrol.yaml``: the gallery folder's per-product feature cache filled (one
+    shard of its products with ``shard``), and with ``save`` the whole gallery written for ``Recognizer.load``;
+    returns a summary.
+
+    Raises:
+        MatlError: a bad option (checked before any work), no usable gallery, or a cache that cannot be written.
+    """
+    from matl.utils.io import check_output_file, overwrite_option
+
+    validate_config(cfg)
+    quantize_option(cfg)
+    runtime_option(cfg)
+    _threshold(cfg)
+    overwrite = overwrite_option(cfg)
+    if cfg.get("gallery") in (None, ""):
+        raise MatlError("gallery=... is required: python -m matl.enrol gallery=<dir> [save=<gallery.pt>] "
+                        "[shard=<k> shards=<K>]")
+    if not Path(str(cfg.gallery)).expanduser().is_dir():
+        raise MatlError(f"gallery={cfg.gallery}: no such folder")
+    shard, shards = cfg.get("shard"), cfg.get("shards", 1)
+    if not isinstance(shards, int) or isinstance(shards, bool) or shards < 1:
+        raise MatlError(f"shards={shards} is invalid: use an integer >= 1 (the number of shards)")
+    if shard is not None and (not isinstance(shard, int) or isinstance(shard, bool) or not 0 <= shard < shards):
+        raise MatlError(f"shard={shard} is invalid: use an integer in [0, shards={shards}) or null (the whole "
+                        "gallery)")
+    if shard is not None and (cfg.get("save") or not cfg.cache):
+        raise MatlError("shard= fills the gallery's cache only: drop save= and cache=false, and save from a run "
+                        "without shard= once every shard is done")
+    save = check_output_file(cfg.save, "save", overwrite, example="gallery.pt") if cfg.get("save") else None
+    _resolve_model(cfg)
+    recognizer = recognizer_from_config(cfg)
+    if shard is not None:
+        products, embedded = recognizer.enrol_shard(cfg.gallery, int(shard), int(shards))
+        summary = {"gallery": str(cfg.gallery), "shard": int(shard), "shards": int(shards), "products": products,
+                   "embedded": embedded}
+    else:
+        recognizer.enrol(cfg.gallery, cache=bool(cfg.cache))
+        if save is not None:
+            recognizer.save(save)
+        summary = {"gallery": str(cfg.gallery), "products": len(recognizer.objects),
+                   "planes": len(recognizer.planes), "saved": None if save is None else str(save)}
+    log.info("enrol: %s", json.dumps(summary))
+    folder = cfg.get("paths", {}).get("output_dir") if isinstance(cfg.get("paths"), DictConfig) else None
+    if folder:  # the run's record (a sweep of shards counts these)
+        write_json(Path(str(folder)) / "enrol.json", summary)
+    return summary
+
+
 def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]:
     """Run predict for a composed ``conf/predict.yaml``; returns a summary.
 
@@ -231,9 +299,7 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
         MatlError: a bad option, no usable gallery, or no readable query image at all (then nothing
             is written; with some readable images the others are reported and the run succeeds).
     """
-    from omegaconf import open_dict
 
-    from matl.models import checkpoint
     from matl.utils.io import atomic_write, check_output_file, check_output_folder, overwrite_option
 
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
@@ -252,15 +318,7 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
     files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
     if not files:
         raise MatlError(f"images={cfg.images} holds no files")
-    if cfg.get("ckpt") in (None, ""):  # the model shipped in the package
-        if not checkpoint.PRETRAINED.is_file():
-            raise MatlError(f"ckpt=... is required: no pretrained model ships with this install "
-                            f"({checkpoint.PRETRAINED} is missing); train one (python -m matl.train) and pass its "
-                            "checkpoints/best.ckpt")
-        with open_dict(cfg):
-            cfg.ckpt = str(checkpoint.PRETRAINED)
-    else:  # ckpt=pretrained / pretrained_fast: a shipped model by name
-        checkpoint.resolve_ckpt_option(cfg)
+    _resolve_model(cfg)
     baseline = None
     if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
         from matl.inference.baseline_files import baseline_recognizer_from_config

@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -201,19 +202,59 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
     layout = f"{files.root}/<object>/<plane>.png"
     if not files.paths:
         raise MatlError(f"gallery={files.root} holds no canonical images: expected {layout}")
+    planes_of = _planes_of(files)
+    products, missing, folder, writable = _product_payloads(files, planes_of, range(len(files.object_names)),
+                                                            feature_net, image_size, num_anchors, fill, cache_tag,
+                                                            batch_size, progress)
+    if folder is not None and writable:
+        _drop_stale(folder, set(files.object_names), str(cache_tag))
+    kept = [planes_of[o][int(j)] for o, payload in enumerate(products) for j in payload["kept"]]
+    if not kept:
+        raise MatlError(f"gallery={files.root} holds no usable image (all were skipped): expected {layout}")
+    used = [p for p in products if len(p["kept"])]  # a product whose every file was skipped adds nothing
+    canon_u8 = torch.cat([p["images"] for p in used])
+    canon_H_file = torch.cat([p["canon_H_file"] for p in used])
+    file_sizes = torch.cat([p["file_sizes"] for p in used])
+    features = None if feature_net is None else torch.cat([p["features"] for p in used])
+    # objects whose every plane was skipped disappear; the others are re-indexed densely
+    used_objects = sorted({files.plane_object[i] for i in kept})
+    remap = {o: j for j, o in enumerate(used_objects)}
+    gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
+                            [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
+                            num_anchors)
+    log.info("gallery: %d objects, %d planes, %d anchors (%d products read from the cache, %d enrolled; %.1f s)",
+             len(gallery.object_names), len(kept), len(gallery), len(products) - missing, missing,
+             time.perf_counter() - started)
+    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept],
+                           folder if writable else None, canon_u8)
+
+
+def _planes_of(files: GalleryFiles) -> list[list[int]]:
+    """Each product's planes (indices into ``files.paths``)."""
     planes_of: list[list[int]] = [[] for _ in files.object_names]
     for i, o in enumerate(files.plane_object):
         planes_of[o].append(i)
+    return planes_of
+
+
+def _product_payloads(files: GalleryFiles, planes_of: list[list[int]], wanted: Sequence[int],
+                      feature_net: nn.Module | None, image_size: int, num_anchors: int, fill: float,
+                      cache_tag: str | None, batch_size: int, progress: bool | None
+                      ) -> tuple[list[dict[str, Any] | None], int, Path | None, bool]:
+    """The ``wanted`` products' images, geometry and features: read from their cache files where those match,
+    else loaded, embedded and written :data:`ENROL_PLANES` planes at a time. Returns the payload of each product
+    (None where not wanted), how many were embedded, the cache folder and whether it was writable."""
     settings = {"format": CACHE_FORMAT, "checkpoint": cache_tag, "image_size": int(image_size),
                 "num_anchors": int(num_anchors), "fill": float(fill), "anchors": "fixed"}
     caching = cache_tag is not None and feature_net is not None
     folder = _cache_folder(files.root, settings) if caching else None
-    prints = _product_fingerprints(files) if caching else None
+    prints = _product_fingerprints(files) if caching else {}
     products: list[dict[str, Any] | None] = [None] * len(files.object_names)
     if folder is not None:
-        for o, name in enumerate(files.object_names):
+        for o in wanted:
+            name = files.object_names[o]
             products[o] = _read_cache(folder / f"{name}.pt", {**settings, "files": prints[name]})
-    missing = [o for o, payload in enumerate(products) if payload is None]
+    missing = [o for o in wanted if products[o] is None]
     writable = folder is not None
     show = progress if progress is not None else (sys.stderr.isatty() and sum(len(planes_of[o]) for o in missing)
                                                   > ENROL_PLANES)
@@ -246,27 +287,29 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
                     writable = _write_cache(folder / f"{name}.pt", {
                         "key": json.dumps({**settings, "files": prints[name]}, sort_keys=True), **payload})
             bar.advance(task, len(part))
-    if folder is not None and writable:
-        _drop_stale(folder, set(files.object_names), cache_tag)
-    kept = [planes_of[o][int(j)] for o, payload in enumerate(products) for j in payload["kept"]]
-    if not kept:
-        raise MatlError(f"gallery={files.root} holds no usable image (all were skipped): expected {layout}")
-    used = [p for p in products if len(p["kept"])]  # a product whose every file was skipped adds nothing
-    canon_u8 = torch.cat([p["images"] for p in used])
-    canon_H_file = torch.cat([p["canon_H_file"] for p in used])
-    file_sizes = torch.cat([p["file_sizes"] for p in used])
-    features = None if feature_net is None else torch.cat([p["features"] for p in used])
-    # objects whose every plane was skipped disappear; the others are re-indexed densely
-    used_objects = sorted({files.plane_object[i] for i in kept})
-    remap = {o: j for j, o in enumerate(used_objects)}
-    gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
-                            [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
-                            num_anchors)
-    log.info("gallery: %d objects, %d planes, %d anchors (%d products read from the cache, %d enrolled; %.1f s)",
-             len(gallery.object_names), len(kept), len(gallery), len(products) - len(missing), len(missing),
-             time.perf_counter() - started)
-    return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept],
-                           folder if writable else None, canon_u8)
+    return products, len(missing), folder, writable
+
+
+def cache_gallery_shard(root: str | Path, feature_net: nn.Module, image_size: int, num_anchors: int, fill: float,
+                        cache_tag: str, shard: int, shards: int, batch_size: int = 256,
+                        progress: bool | None = None) -> tuple[int, int]:
+    """Enrol one shard of a gallery folder's products into its feature cache (:func:`enrol_gallery`'s): the
+    products at positions ``shard``, ``shard + shards``, ... of the folder's sorted product folders. The shards of
+    one folder run in separate processes or hosts that share the folder; an :func:`enrol_gallery` afterwards reads
+    every product from the cache. Returns ``(products of the shard, of those embedded now)``."""
+    if not (isinstance(shards, int) and shards >= 1 and isinstance(shard, int) and 0 <= shard < shards):
+        raise MatlError(f"shard={shard} of shards={shards} is invalid: use integers with 0 <= shard < shards")
+    files = scan_gallery(root)
+    if not files.paths:
+        raise MatlError(f"gallery={files.root} holds no canonical images: expected {files.root}/<object>/<plane>.png")
+    wanted = range(shard, len(files.object_names), shards)
+    _, embedded, _, writable = _product_payloads(files, _planes_of(files), wanted, feature_net, image_size,
+                                                 num_anchors, fill, cache_tag, batch_size, progress)
+    if not writable:
+        raise MatlError(f"gallery={files.root}: its feature cache cannot be written there; a shard's work is its "
+                        "cache files: give a folder this process can write")
+    log.info("gallery shard %d of %d: %d products, %d embedded", shard, shards, len(wanted), embedded)
+    return len(wanted), embedded
 
 
 def _product_fingerprints(files: GalleryFiles) -> dict[str, list[tuple[str, int, int]]]:

@@ -259,3 +259,26 @@ def test_a_rerun_never_loses_an_earlier_result(tiny_run: Path, tmp_path: Path, m
     predict(predict_cfg(tmp_path, ckpt, gallery, queries / "red_box.png", ["cache=false", "threshold=null",
                                                                            "overwrite=true"]))
     assert len(out.read_text().splitlines()) == 1  # replaced, once complete
+
+
+def test_enrol_in_shards_then_merge_and_save(tiny_run: Path, tmp_path: Path) -> None:
+    """python -m matl.enrol: two shards fill the gallery's cache (as separate processes would), a run without shard
+    reads every product from it and saves the gallery, which a Recognizer loads and answers with as predict does."""
+    from matl.inference.files import enrol
+
+    ckpt = tiny_run / "checkpoints" / "best.ckpt"
+    gallery, queries, _ = make_files(tmp_path)
+
+    def run(*extra: str) -> dict:
+        return enrol(compose_config("enrol", [f"ckpt={ckpt}", f"gallery={gallery}", *extra], tmp_path / "run"))
+
+    shards = [run(f"shard={k}", "shards=2") for k in range(2)]
+    assert [s["products"] for s in shards] == [2, 1] and [s["embedded"] for s in shards] == [2, 1]
+    assert json.loads((tmp_path / "run" / "enrol.json").read_text())["shard"] == 1
+    merged = run(f"save={tmp_path / 'gallery.pt'}")
+    assert merged["products"] == 3 and merged["saved"] == str(tmp_path / "gallery.pt")
+    loaded = Recognizer.from_checkpoint(ckpt).load(tmp_path / "gallery.pt")
+    enrolled = Recognizer.from_checkpoint(ckpt).enrol(gallery, cache=False)
+    query = str(queries / "red_box.png")
+    a, b = loaded.predict(query), enrolled.predict(query)
+    assert (a.object, a.known, a.distance) == (b.object, b.known, b.distance)

@@ -12,7 +12,8 @@ import torch
 from torch import nn
 
 from matl.inference import gallery as gallery_module
-from matl.inference.gallery import enrol_gallery
+from matl.inference.gallery import cache_gallery_shard, enrol_gallery
+from matl.utils.errors import MatlError
 from tests.inference.test_api import gallery_folder
 
 SIZE, N = 32, 4
@@ -114,3 +115,22 @@ def test_a_product_whose_every_file_is_unusable_is_skipped_and_remembered(tmp_pa
     assert enrolled.gallery.object_names == ["p00", "p02"] and net.seen == 2 * N
     again = enrol(root, net)
     assert again.gallery.object_names == ["p00", "p02"] and net.seen == 2 * N
+
+
+def test_shards_enrolled_apart_merge_into_the_whole_gallery(tmp_path: Path) -> None:
+    root = gallery_folder(tmp_path / "g", 5)
+    tag = "0123456789abcdef" * 4
+    seen = []
+    for shard in range(2):  # e.g. two processes or hosts sharing the folder
+        net = CountingNet()
+        assert cache_gallery_shard(root, net, SIZE, N, 1.0, tag, shard, 2) == ((5 - shard + 1) // 2,) * 2
+        seen.append(net.seen)
+    assert seen == [3 * N, 2 * N] and cache_files(root) == [f"p{k:02d}" for k in range(5)]
+    net = CountingNet()
+    merged = enrol(root, net)
+    assert net.seen == 0  # the merge reads every product from the shards' files
+    assert torch.equal(merged.features, enrol(root, CountingNet(), cache=False).features)
+    assert cache_gallery_shard(root, CountingNet(), SIZE, N, 1.0, tag, 1, 2) == (2, 0)  # done already
+    for shard, shards in ((2, 2), (-1, 2), (0, 0)):
+        with pytest.raises(MatlError, match=f"shard={shard} of shards={shards} is invalid"):
+            cache_gallery_shard(root, CountingNet(), SIZE, N, 1.0, tag, shard, shards)
