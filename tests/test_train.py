@@ -83,3 +83,18 @@ def test_the_shipped_default_recipe_fine_tunes_the_whole_product_model(tmp_path:
     assert occluded.model.align.optimizer.lr == 0.0003 and occluded.model.optimizer.lr == 0.003
     assert {k: v for k, v in occluded.model.align.items() if k != "optimizer"} == {
         k: v for k, v in whole.model.align.items() if k != "optimizer"}
+
+
+def test_the_shipped_fast_recipe_fine_tunes_the_whole_product_fast_model(tmp_path: Path) -> None:
+    """experiment=pretrained_fast_occluded: experiment=pretrained_fast's settings, occluders on, started from the
+    model the first command publishes, 1500 steps of a schedule laid out over 12 epochs, published into the package."""
+    from tests.conftest import compose_config
+
+    whole = compose_config("train", ["experiment=pretrained_fast"], tmp_path / "whole")
+    occluded = compose_config("train", ["experiment=pretrained_fast_occluded"], tmp_path / "occluded")
+    assert occluded.data.occlude is not None and whole.data.occlude is None
+    assert whole.publish == occluded.init_from == "runs/pretrained_fast_whole.ckpt"
+    assert occluded.publish == "shipped_fast" and occluded.model.scheduler.T_max == 12
+    assert occluded.trainer.max_epochs * occluded.data.train_triplets // occluded.data.batch_size == 1500
+    assert occluded.model.stn == whole.model.stn and occluded.model.feature_net == whole.model.feature_net
+    assert occluded.model.optimizer.lr == 0.003 and occluded.model.get("align") is None

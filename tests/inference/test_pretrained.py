@@ -91,11 +91,12 @@ needs_fast = pytest.mark.skipif(not FAST.is_file(), reason=f"{FAST} is not in th
 def test_the_fast_shipped_model_is_its_experiment_and_loads_by_name(tmp_path: Path) -> None:
     ckpt = torch.load(FAST, map_location="cpu", weights_only=True)
     assert FAST.stat().st_size < 2 * 2**20 and "optimizer_states" not in ckpt
-    # experiment=pretrained_fast: model=matl_camera_fast (regressor at stride 4 on raw pixels, c()'s first conv at 16
-    # channels), no alignment stage
-    recipe = compose_config("train", ["experiment=pretrained_fast"], tmp_path)
+    # experiment=pretrained_fast, fine-tuned by experiment=pretrained_fast_occluded: model=matl_camera_fast (regressor
+    # at stride 4 on raw pixels, c()'s first conv at 16 channels), no alignment stage, trained with occluders
+    recipe = compose_config("train", ["experiment=pretrained_fast_occluded"], tmp_path)
     model = ckpt["matl_config"]["model"]
     assert recipe.publish == "shipped_fast"
+    assert ckpt["matl_config"]["data"]["occlude"]["_target_"] == "matl.data.occlusion.OccludeQueries"
     for part in ("stn", "feature_net"):
         assert model[part] == OmegaConf.to_container(recipe.model[part], resolve=True), part
     assert model["stn"]["regressor"]["strides"] == [4, 1] and model["feature_net"]["input_norm"] == "channel"
