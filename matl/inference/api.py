@@ -270,6 +270,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.runtime_fallback: str | None = None
         self._runtime_path: Any = None  # runtime=onnxruntime's query path, built at the first query
         self._planes: list[_Plane] = []
+        #: per gallery, kept while it is the same: (planes list, its length, objects, each plane's product position)
+        self._product_index: tuple[list[_Plane], int, list[str], list[int], torch.Tensor] | None = None
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
         self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
@@ -354,15 +356,14 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
     def _plane_distances(self, features: torch.Tensor) -> torch.Tensor:
         """``(Q, P)`` distance of each feature to the nearest anchor of every enrolled plane (the gallery
         features the search uses: int8 ones with ``quantize=int8``)."""
-        gallery = self._gallery_recognizer().gallery_features.double().cpu()
-        d = torch.cdist(features.double().cpu(), gallery)  # (Q, G), anchors plane-major
+        d = self._gallery_recognizer().gallery_distances(features).cpu()  # (Q, G), anchors plane-major
         return d.view(len(features), len(self._planes), -1).min(2).values
 
     def _object_distances(self, features: torch.Tensor) -> tuple[torch.Tensor, list[str]]:
         """``(Q, O)`` distance of each feature to the nearest anchor of every product, and the products."""
         objects = self.objects
         by_plane = self._plane_distances(features)
-        owner = torch.tensor(self._plane_objects())
+        owner = self._products()[2]
         out = torch.full((len(features), len(objects)), float("inf"), dtype=torch.float64)
         return out.scatter_reduce(1, owner.expand(len(features), -1), by_plane, reduce="amin"), objects
     # ----------------------------------------------------------------------------- grey queries
@@ -511,16 +512,17 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
             pred, verification = self._flow_poses(queries, pred, verification, visibility, _upscale(query_H_file))
         plane = pred.plane_index.cpu()
-        canon_H_file = torch.stack([p.canon_H_file for p in self._planes])
         H = None
-        if pred.query_H_canon is not None:
-            H = pose_in_files(pred.query_H_canon.cpu(), canon_H_file[plane], query_H_file)
+        if pred.query_H_canon is not None:  # the answered planes' file geometry (not the whole catalogue's)
+            canon_H_file = torch.stack([self._planes[int(p)].canon_H_file for p in plane])
+            H = pose_in_files(pred.query_H_canon.cpu(), canon_H_file, query_H_file)
         threshold = self.threshold
         features = pred.features  # c(s(query)), as the search used it: per-product distances
         if features is None:
             features = embed(self.model.feature_net, pred.warped)
         by_object, objects = self._object_distances(features)
-        own = torch.tensor([objects.index(self._planes[int(p)].object) for p in plane])
+        position = self._plane_objects()
+        own = torch.tensor([position[int(p)] for p in plane], dtype=torch.long)
         nearest = by_object.gather(1, own[:, None])[:, 0]
         second = by_object.scatter(1, own[:, None], float("inf")).min(1).values
         statistic = self._statistic(nearest, second if len(objects) > 1 else nearest,
@@ -547,16 +549,16 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if top_k <= 1:
             return [[] for _ in range(len(own))]
         by_plane = self._plane_distances(features)
-        objects = self.objects
+        position = self._plane_objects()
         out = []
         for i in range(len(own)):
             seen = {int(own[i])}
             matches = []
             for k in torch.argsort(by_plane[i]).tolist():
                 plane = self._planes[k]
-                if objects.index(plane.object) in seen:
+                if position[k] in seen:
                     continue
-                seen.add(objects.index(plane.object))
+                seen.add(position[k])
                 d = float(by_plane[i, k])
                 matches.append(Match(plane.object, plane.name, -1, d, float("nan"), True, None, plane.object,
                                      plane.name, plane.path))

@@ -47,13 +47,23 @@ class Enrolment:
     @property
     def objects(self) -> list[str]:
         """The enrolled products, in enrolment order."""
-        return list(dict.fromkeys(p.object for p in self._planes))
+        return list(self._products()[0])
 
     def _plane_objects(self) -> list[int]:
-        """The product of each enrolled plane as its position in :attr:`objects` (a dict of the names:
-        ``objects.index`` per plane is quadratic in the gallery)."""
-        position: dict[str, int] = {}
-        return [position.setdefault(p.object, len(position)) for p in self._planes]
+        """The product of each enrolled plane as its position in :attr:`objects`."""
+        return self._products()[1]
+
+    def _products(self) -> tuple[list[str], list[int], torch.Tensor]:
+        """:attr:`objects`, :meth:`_plane_objects` and the latter as a ``(P,)`` int64 tensor, computed once per
+        gallery (every query of a warehouse catalogue needs them; a dict of the names: ``objects.index`` per plane
+        is quadratic in the gallery)."""
+        held = self._product_index
+        if held is None or held[0] is not self._planes or held[1] != len(self._planes):
+            position: dict[str, int] = {}
+            owners = [position.setdefault(p.object, len(position)) for p in self._planes]
+            held = (self._planes, len(self._planes), list(position), owners, torch.tensor(owners, dtype=torch.long))
+            self._product_index = held
+        return held[2], held[3], held[4]
 
     @property
     def planes(self) -> list[tuple[str, str]]:

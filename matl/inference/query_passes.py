@@ -108,12 +108,11 @@ class QueryPasses:
                              for a in ones])
         within = (raw * alpha).to(queries.device)  # (B, 3, S, S): the query inside the foreground step's alpha
         inner = self._gallery_recognizer()
-        canon = torch.stack([p.canon_u8 for p in self._planes]).to(queries.device)
         for _ in range(passes):
             pred = inner(queries)
             if pred.query_H_canon is None:  # a model without a pose: the foreground step's alpha alone
                 break
-            outline = pose_mask(canon[pred.plane_index.to(queries.device)], pred.query_H_canon.to(queries.device),
-                                self.image_size)
+            canon = torch.stack([self._planes[int(p)].canon_u8 for p in pred.plane_index]).to(queries.device)
+            outline = pose_mask(canon, pred.query_H_canon.to(queries.device), self.image_size)
             queries = torch.where(redo, within * outline, queries)
         return recognizer(queries), queries

@@ -492,7 +492,7 @@ def _candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object:
     features, stn_H, _, warped = recognizer.embed_queries(queries)
     if stn_H is None:
         raise ValueError("verification needs a pose: the model has no STN")
-    d = torch.cdist(features.double(), recognizer.gallery_features.double())
+    d = recognizer.gallery_distances(features)
     if exclude_object is not None:
         own = recognizer.gallery.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
         d = d.masked_fill(own, float("inf"))

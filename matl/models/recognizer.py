@@ -39,7 +39,7 @@ from matl.geometry import (
 from matl.losses import anchor_distances
 from matl.models.feature import FeatureNet
 from matl.models.prediction import Prediction
-from matl.models.search import ExactSearch, GallerySearch, SearchFactory
+from matl.models.search import ExactSearch, GallerySearch, SearchFactory, distances
 from matl.models.stn import SpatialTransformer, regress_homography
 
 __all__ = ["MODAL_LAYERS", "CompiledQueryPath", "QueryGraph", "TensorRecognizer", "embed", "weights_key"]
@@ -261,6 +261,16 @@ class TensorRecognizer(nn.Module):
     def gallery_features(self, features: torch.Tensor) -> None:
         self._gallery_features = features
         self.search: GallerySearch = self._search_factory(features)
+        self._gallery64: tuple[torch.Tensor, torch.Tensor] | None = None  # float64 copy and squared norms
+
+    def gallery_distances(self, features: torch.Tensor) -> torch.Tensor:
+        """``(Q, G)`` float64 L2 distance of each of ``features`` ``(Q, D)`` to every gallery anchor (verification's
+        candidates, the per-product distances of the open set); the float64 gallery and its squared norms are
+        computed once per gallery."""
+        if self._gallery64 is None:
+            gallery = self._gallery_features.double()
+            self._gallery64 = (gallery, gallery.pow(2).sum(-1))
+        return distances(features.double().to(self._gallery64[0].device), *self._gallery64)
 
     def use_search(self, factory: SearchFactory) -> None:
         """Switch the search backend (e.g. to FAISS for a very large gallery)."""

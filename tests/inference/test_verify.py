@@ -108,6 +108,9 @@ class StubRecognizer:
         self.gallery = SimpleNamespace(images=anchors, object_index=torch.tensor(objects))
         self.gallery_features, self.query_features, self.align = gallery_features, query_features, None
 
+    def gallery_distances(self, features: torch.Tensor) -> torch.Tensor:
+        return torch.cdist(features.double(), self.gallery_features.double())
+
     def embed_queries(self, queries: torch.Tensor):
         n = len(queries)
         index = [int(i) for i in queries[:, 0, 0, 0]]  # the query's own number, stamped in a corner pixel

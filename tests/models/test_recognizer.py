@@ -12,7 +12,7 @@ from matl.data.gallery import Gallery
 from matl.geometry import anchor_H_canon, sample_by_normalised, sample_by_normalised_kornia, warp_image
 from matl.models.feature import FeatureNet
 from matl.models.recognizer import CompiledQueryPath, QueryGraph, TensorRecognizer
-from matl.models.search import nearest
+from matl.models.search import distances, nearest
 from matl.models.stn import HomographyRegressor, SpatialTransformer
 from tests.conftest import compose_config
 from tests.speed_helpers import textured_planes
@@ -174,3 +174,13 @@ def test_matl_fast_networks_take_the_same_fast_paths(tmp_path: Path) -> None:
     assert torch.equal(torch.cat([p.gallery_index for p in one]), ref.gallery_index)
     assert torch.allclose(torch.cat([p.query_H_canon for p in one]), ref.query_H_canon, rtol=1e-5, atol=1e-4)
     assert torch.allclose(torch.cat([p.distance for p in one]), ref.distance, atol=1e-5)
+
+
+def test_all_distances_are_cdist_s() -> None:
+    g = torch.Generator().manual_seed(3)
+    gallery, queries = torch.randn(300, 16, generator=g), torch.randn(5, 16, generator=g)
+    expected = torch.cdist(queries.double(), gallery.double())
+    torch.testing.assert_close(distances(queries, gallery.double()), expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(distances(queries, gallery.double(), gallery.double().pow(2).sum(-1)), expected,
+                               rtol=0, atol=1e-12)
+    assert distances(queries[:0], gallery.double()).shape == (0, 300)
