@@ -87,8 +87,8 @@ class Enrolment:
         and skipped."""
         with self._lock:
             enrolled = enrol_gallery(folder, self.model.feature_net, self.image_size, self.num_anchors,
-                                     self.gallery_fill, self.model_id if cache else None)
-            g, N = enrolled.gallery, self.num_anchors
+                                     self.gallery_fill, self.model_id if cache else None, anchors=False)
+            N = self.num_anchors
             canon_u8 = enrolled.canon_u8
             added = []
             for p, path in enumerate(enrolled.paths):
@@ -96,15 +96,14 @@ class Enrolment:
                 if problem is not None:
                     report_skipped(Path(path), problem)
                     continue
-                obj = g.object_names[int(g.object_index[p * N])]
-                self._remove_plane(obj, g.plane_names[p])
-                added.append(_Plane(obj, g.plane_names[p], canon_u8[p].clone(), enrolled.canon_H_file[p].clone(),
-                                    tuple(int(v) for v in enrolled.file_sizes[p]), str(path),
-                                    enrolled.features[p * N:(p + 1) * N].clone()))
+                added.append(_Plane(enrolled.plane_objects[p], enrolled.plane_names[p], canon_u8[p].clone(),
+                                    enrolled.canon_H_file[p].clone(), tuple(int(v) for v in enrolled.file_sizes[p]),
+                                    str(path), enrolled.features[p * N:(p + 1) * N].clone()))
             if not added:
                 raise MatlError(f"gallery={folder} holds no usable image (all were skipped): expected "
                                 f"{folder}/<object>/<plane>.png of at least {MIN_GALLERY_SIDE} px a side")
-            self._planes.extend(added)
+            replaced = {(p.object, p.name) for p in added}  # planes of the same name are replaced (in one pass)
+            self._planes = [p for p in self._planes if (p.object, p.name) not in replaced] + added
             self._changed()
             folder_of_cache = enrolled.cache_file.parent if cache and enrolled.cache_file is not None else None
             self._calibration_folder = None if folder_of_cache is None else (folder_of_cache, [id(p) for p in added])

@@ -48,7 +48,8 @@ class EnrolledGallery:
     """A gallery built from canonical image files.
 
     Attributes:
-        gallery: the ``G = P * N`` anchors at model size with labels and ``anchor_H_canon``.
+        gallery: the ``G = P * N`` anchors at model size with labels and ``anchor_H_canon`` (None: not built,
+            ``anchors=False``).
         features: ``(G, D)`` ``c(anchor)``, or None if no feature net was given.
         canon_H_file: ``(P, 3, 3)`` float64, gallery-file pixel -> canonical model-frame pixel.
         file_sizes: ``(P, 2)`` int64 ``(height, width)`` of each canonical image file.
@@ -57,13 +58,16 @@ class EnrolledGallery:
         canon_u8: ``(P, 3, S, S)`` uint8 canonical images at model size (the anchors are their rotations).
     """
 
-    gallery: Gallery
+    gallery: Gallery | None
     features: torch.Tensor | None
     canon_H_file: torch.Tensor
     file_sizes: torch.Tensor
     paths: list[Path]
     cache_file: Path | None = None
     canon_u8: torch.Tensor | None = None
+    #: ``(P,)`` each plane's object and plane name
+    plane_objects: list[str] | None = None
+    plane_names: list[str] | None = None
 
 
 def report_skipped(path: Path, reason: str) -> None:
@@ -174,7 +178,7 @@ def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: 
 
 def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: int, num_anchors: int,
                   fill: float = 1.0, cache_tag: str | None = None, batch_size: int = 256,
-                  progress: bool | None = None) -> EnrolledGallery:
+                  progress: bool | None = None, anchors: bool = True) -> EnrolledGallery:
     """Enrol ``<root>/<object>/<plane>.png`` files into a gallery, features cached per product when ``cache_tag``
     is set.
 
@@ -192,6 +196,8 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
         batch_size: images per ``c()`` call.
         progress: a progress bar over the products to embed (None: on a terminal, for more than
             :data:`ENROL_PLANES` planes).
+        anchors: build the gallery's anchor images (False: the planes, their features and names alone; a
+            :class:`~matl.inference.api.Recognizer` builds its own gallery from them).
     Raises:
         MatlError: no folder, or no usable image in it.
     """
@@ -219,14 +225,15 @@ def enrol_gallery(root: str | Path, feature_net: nn.Module | None, image_size: i
     # objects whose every plane was skipped disappear; the others are re-indexed densely
     used_objects = sorted({files.plane_object[i] for i in kept})
     remap = {o: j for j, o in enumerate(used_objects)}
-    gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept],
-                            [files.plane_names[i] for i in kept], [files.object_names[o] for o in used_objects],
-                            num_anchors)
+    plane_names = [files.plane_names[i] for i in kept]
+    gallery = build_gallery(canon_u8, [remap[files.plane_object[i]] for i in kept], plane_names,
+                            [files.object_names[o] for o in used_objects], num_anchors) if anchors else None
     log.info("gallery: %d objects, %d planes, %d anchors (%d products read from the cache, %d enrolled; %.1f s)",
-             len(gallery.object_names), len(kept), len(gallery), len(products) - missing, missing,
+             len(used_objects), len(kept), len(kept) * num_anchors, len(products) - missing, missing,
              time.perf_counter() - started)
     return EnrolledGallery(gallery, features, canon_H_file, file_sizes, [files.paths[i] for i in kept],
-                           folder if writable else None, canon_u8)
+                           folder if writable else None, canon_u8,
+                           [files.object_names[files.plane_object[i]] for i in kept], plane_names)
 
 
 def _planes_of(files: GalleryFiles) -> list[list[int]]:
