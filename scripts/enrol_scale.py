@@ -7,8 +7,9 @@ On a copy-free gallery folder (``<gallery>/<object>/<plane>.png``, e.g. ``<out>/
 
 1. ``fresh_s``: ``python -m matl.enrol`` from an empty cache (the folder's ``.matl_gallery_*`` removed first), in a
    subprocess, as a user runs it; ``s_per_1000_products`` from it; ``cache_bytes_per_product``: the cache's size.
-2. ``resumed_s``: the cache emptied again, an enrolment killed after ``--kill-after`` seconds, then run again: the
-   second run's time, and ``kept_products``: the products the killed run had written.
+2. ``resumed_s``: the cache emptied again, an enrolment killed (SIGTERM, as a job scheduler or ``kill`` stops it)
+   after ``--kill-after`` seconds, then run again: the second run's time, and ``kept_products``: the products the
+   killed run had written.
 3. ``cached_s``: an enrolment that reads every product from the cache; ``grown_s``: the same after one product
    folder was added (a copy of the first under a new name; removed again at the end).
 4. In one process (``Recognizer``): ``add_ms`` (``Recognizer.add`` of one plane) and the first query after it,
@@ -80,7 +81,7 @@ def main() -> None:
     killed = subprocess.Popen(enrol_command(gallery, args.ckpt, runs / "killed"), stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     time.sleep(args.kill_after)
-    killed.send_signal(signal.SIGINT)  # the user's Ctrl-C
+    killed.send_signal(signal.SIGTERM)
     killed.wait()
     result["kept_products"] = cached_products(gallery)
     result["resumed_s"] = timed_enrol(gallery, args.ckpt, runs / "resumed")
