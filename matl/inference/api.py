@@ -274,6 +274,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self._product_index: tuple[list[_Plane], int, list[str], list[int], torch.Tensor] | None = None
         self._lock = threading.RLock()
         self._built: tuple[Any, Gallery] | None = None
+        self._built_planes: list[_Plane] = []  # the planes self._built holds, in its order
+        #: the last built gallery and its planes after a change, until the next build takes what it can of it
+        self._previous_gallery: tuple[list[_Plane], Gallery] | None = None
         self._calibrated: tuple[float, torch.Tensor] | None = None  # (threshold, sorted impostor distances)
         #: samples of the open-set statistic with the key they were made under (calibration_key): from load(), the
         #: enrolment folder's cache or the last calibration
@@ -331,7 +334,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if not self._planes:
             raise MatlError("the gallery is empty: enrol(folder) or add(object, plane, image) first")
         gallery = build_gallery(torch.stack([p.canon_u8 for p in self._planes]), self._plane_objects(),
-                                [p.name for p in self._planes], self.objects, self.num_anchors).to(self.device)
+                                [p.name for p in self._planes], self.objects, self.num_anchors,
+                                self._reused_anchors()).to(self.device)
         features = torch.cat([p.features for p in self._planes]).to(self.device)
         model = self.model
         recognizer = TensorRecognizer(model.feature_net, model.stn, gallery, model.anchor_choice,
@@ -346,7 +350,26 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         check = self._pose_check if self.refine_check == "verify" else None
         predictor = RefinedRecognizer(recognizer, self.refiner, check=check) if self.refiner is not None else recognizer
         self._built = (predictor, gallery)
+        self._built_planes = list(self._planes)
         return self._built
+
+    def _reused_anchors(self) -> torch.Tensor | None:
+        """The current planes' anchor images ``(P * N, 3, S, S)``, those of the planes the last built gallery held
+        taken from it and the others' warped now (an add or remove in a warehouse catalogue rebuilds in a copy,
+        not in a warp of every anchor); None when there is nothing to take (then every plane is warped)."""
+        previous, self._previous_gallery = self._previous_gallery, None
+        if previous is None:
+            return None
+        planes, gallery = previous  # the old planes are held there, so their ids cannot be reused by new ones
+        where = {id(p): j for j, p in enumerate(planes)}
+        new = [p for p in self._planes if id(p) not in where]
+        if len(new) == len(self._planes):
+            return None
+        N, old = self.num_anchors, gallery.images
+        warped = iter(build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new), ["p"] * len(new), ["o"],
+                                    N).images.to(old.device).split(N)) if new else iter(())
+        return torch.cat([old[where[id(p)] * N:(where[id(p)] + 1) * N] if id(p) in where else next(warped)
+                          for p in self._planes])
 
     def _gallery_recognizer(self) -> TensorRecognizer:
         """The batch recognizer without its refinement wrapper (its networks and gallery features)."""
@@ -384,6 +407,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                             for p, g, f in zip(self._planes, grey, features, strict=True)]
             twin._variant, twin._grey = "grey", None
             twin._built = twin._calibrated = twin._verify_refiner = twin._stored_calibration = None
+            twin._previous_gallery = None
             same_folder = self.calibration_cache_file() is not None
             twin._calibration_folder = ((self._calibration_folder[0], [id(p) for p in twin._planes])
                                         if same_folder else None)

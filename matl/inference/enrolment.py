@@ -75,6 +75,8 @@ class Enrolment:
         return embed(self.model.feature_net, gallery.images.to(self.device)).cpu()
 
     def _changed(self) -> None:
+        if self._built is not None:  # its anchor images serve the next build's planes that it held
+            self._previous_gallery = (self._built_planes, self._built[1])
         self._built = None
         self._calibrated = None
         self._verify_refiner = None

@@ -157,13 +157,17 @@ def _drop_stale(folder: Path, products: set[str], checkpoint: str) -> None:
 
 
 def build_gallery(canon_u8: torch.Tensor, plane_object: list[int], plane_names: list[str],
-                  object_names: list[str], num_anchors: int) -> Gallery:
-    """The ``P * N`` fixed anchors of the canonical images (docs/design.md), flattened plane-major."""
+                  object_names: list[str], num_anchors: int, images: torch.Tensor | None = None) -> Gallery:
+    """The ``P * N`` fixed anchors of the canonical images (docs/design.md), flattened plane-major; ``images``:
+    the anchors' ``(P * N, 3, S, S)`` images when already made (then only the labels are built)."""
     P, N = len(canon_u8), num_anchors
     size = int(canon_u8.shape[-1])
     H = anchor_H_canon(N, (size, size), torch.float64)                    # (N, 3, 3)
     flat_H = H.repeat(P, 1, 1)                                             # (P*N, 3, 3)
-    if P:  # warped BUILD_PLANES planes at a time: the peak stays near the anchors' own (P*N, 3, S, S) floats
+    if images is not None:
+        if images.shape != (P * N, *canon_u8.shape[1:]):
+            raise ValueError(f"images {tuple(images.shape)} are not the {P * N} anchors of {P} planes")
+    elif P:  # warped BUILD_PLANES planes at a time: the peak stays near the anchors' own (P*N, 3, S, S) floats
         images = torch.empty((P * N, *canon_u8.shape[1:]), dtype=torch.float32)
         for start in range(0, P, BUILD_PLANES):
             canon = canon_u8[start:start + BUILD_PLANES].float().div(255.0).repeat_interleave(N, dim=0)

@@ -50,3 +50,37 @@ def test_a_saved_gallery_grows_linearly_and_holds_images_and_features_only(tmp_p
         image_bytes = n * 3 * SIZE * SIZE
         assert content <= image_bytes * 1.1  # the canonical images dominate: features, matrices, samples are small
         assert sizes[n] <= content + 1024 * len(tensors) + 8192, (n, sizes[n], content)  # torch.save's framing
+
+
+def test_a_gallery_changed_by_add_or_remove_reuses_the_anchors_it_had(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """After ``add`` or ``remove`` the next query warps only the new planes' anchors; the gallery is the one a fresh
+    build makes."""
+    import matl.inference.api as api
+    from matl.inference.gallery import build_gallery
+
+    warped: list[int] = []
+
+    def counting(canon_u8, objects, names, object_names, num_anchors, images=None):
+        warped.append(0 if images is not None else len(canon_u8))
+        return build_gallery(canon_u8, objects, names, object_names, num_anchors, images)
+
+    monkeypatch.setattr(api, "build_gallery", counting)
+    gallery, queries, _ = make_files(tmp_path)
+    rec = stub_recognizer(threshold=None).enrol(gallery, cache=False)
+    query = read_rgb(queries / "red_box.png")
+    rec.predict(query)
+    assert warped == [3]  # the first build warps every plane
+    warped.clear()
+
+    def fresh() -> torch.Tensor:
+        return build_gallery(torch.stack([p.canon_u8 for p in rec._planes]), rec._plane_objects(),
+                             [p.name for p in rec._planes], rec.objects, rec.num_anchors).images
+
+    rec.add("extra", "top", read_rgb(queries / "blue_card.png"))
+    rec.predict(query)
+    assert warped == [1, 0] and torch.equal(rec._build()[1].images, fresh())  # the new plane, then the labels
+    warped.clear()
+    rec.remove("red_box")
+    answer = rec.predict(query)
+    assert warped == [0] and torch.equal(rec._build()[1].images, fresh()) and answer.nearest_object != "red_box"
