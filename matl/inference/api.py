@@ -366,10 +366,21 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if len(new) == len(self._planes):
             return None
         N, old = self.num_anchors, gallery.images
-        warped = iter(build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new), ["p"] * len(new), ["o"],
-                                    N).images.to(old.device).split(N)) if new else iter(())
-        return torch.cat([old[where[id(p)] * N:(where[id(p)] + 1) * N] if id(p) in where else next(warped)
-                          for p in self._planes])
+        images = torch.empty((len(self._planes) * N, *old.shape[1:]), dtype=old.dtype, device=old.device)
+        kept = [(i, where[id(p)]) for i, p in enumerate(self._planes) if id(p) in where]
+        fresh = [i for i, p in enumerate(self._planes) if id(p) not in where]
+        anchor = torch.arange(N, device=old.device)
+
+        def rows(planes: list[int]) -> torch.Tensor:  # the anchor rows of these planes
+            return (torch.tensor(planes, device=old.device)[:, None] * N + anchor).reshape(-1)
+
+        for start in range(0, len(kept), 1024):  # gathered in blocks: no copy of the whole gallery at once
+            block = kept[start:start + 1024]
+            images[rows([i for i, _ in block])] = old[rows([j for _, j in block])]
+        if fresh:
+            images[rows(fresh)] = build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new),
+                                                ["p"] * len(new), ["o"], N).images.to(old.device)
+        return images
 
     def _gallery_recognizer(self) -> TensorRecognizer:
         """The batch recognizer without its refinement wrapper (its networks and gallery features)."""
