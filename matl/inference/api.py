@@ -367,19 +367,22 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             return None
         N, old = self.num_anchors, gallery.images
         images = torch.empty((len(self._planes) * N, *old.shape[1:]), dtype=old.dtype, device=old.device)
-        kept = [(i, where[id(p)]) for i, p in enumerate(self._planes) if id(p) in where]
-        fresh = [i for i, p in enumerate(self._planes) if id(p) not in where]
-        anchor = torch.arange(N, device=old.device)
-
-        def rows(planes: list[int]) -> torch.Tensor:  # the anchor rows of these planes
-            return (torch.tensor(planes, device=old.device)[:, None] * N + anchor).reshape(-1)
-
-        for start in range(0, len(kept), 1024):  # gathered in blocks: no copy of the whole gallery at once
-            block = kept[start:start + 1024]
-            images[rows([i for i, _ in block])] = old[rows([j for _, j in block])]
-        if fresh:
-            images[rows(fresh)] = build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new),
-                                                ["p"] * len(new), ["o"], N).images.to(old.device)
+        runs: list[list[int]] = []  # [first new plane, first old plane, planes]: kept planes in consecutive runs
+        for i, p in enumerate(self._planes):
+            j = where.get(id(p))
+            if j is None:
+                continue
+            if runs and runs[-1][0] + runs[-1][2] == i and runs[-1][1] + runs[-1][2] == j:
+                runs[-1][2] += 1
+            else:
+                runs.append([i, j, 1])
+        for i, j, count in runs:  # one copy a run (an add keeps one run, a remove two)
+            images[i * N:(i + count) * N] = old[j * N:(j + count) * N]
+        if new:
+            fresh = torch.tensor([i for i, p in enumerate(self._planes) if id(p) not in where], device=old.device)
+            rows = (fresh[:, None] * N + torch.arange(N, device=old.device)).reshape(-1)
+            images[rows] = build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new), ["p"] * len(new),
+                                         ["o"], N).images.to(old.device)
         return images
 
     def _gallery_recognizer(self) -> TensorRecognizer:
