@@ -362,8 +362,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             return None
         planes, gallery = previous  # the old planes are held there, so their ids cannot be reused by new ones
         where = {id(p): j for j, p in enumerate(planes)}
-        new = [p for p in self._planes if id(p) not in where]
-        if len(new) == len(self._planes):
+        fresh = [i for i, p in enumerate(self._planes) if id(p) not in where]  # the planes it did not hold
+        if len(fresh) == len(self._planes):
             return None
         N, old = self.num_anchors, gallery.images
         images = torch.empty((len(self._planes) * N, *old.shape[1:]), dtype=old.dtype, device=old.device)
@@ -378,11 +378,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 runs.append([i, j, 1])
         for i, j, count in runs:  # one copy a run (an add keeps one run, a remove two)
             images[i * N:(i + count) * N] = old[j * N:(j + count) * N]
-        if new:
-            fresh = torch.tensor([i for i, p in enumerate(self._planes) if id(p) not in where], device=old.device)
-            rows = (fresh[:, None] * N + torch.arange(N, device=old.device)).reshape(-1)
-            images[rows] = build_gallery(torch.stack([p.canon_u8 for p in new]), [0] * len(new), ["p"] * len(new),
-                                         ["o"], N).images.to(old.device)
+        if fresh:
+            first = torch.tensor(fresh, device=old.device)[:, None] * N
+            rows = (first + torch.arange(N, device=old.device)).reshape(-1)
+            images[rows] = build_gallery(torch.stack([self._planes[i].canon_u8 for i in fresh]), [0] * len(fresh),
+                                         ["p"] * len(fresh), ["o"], N).images.to(old.device)
         return images
 
     def _gallery_recognizer(self) -> TensorRecognizer:
