@@ -280,11 +280,9 @@ class FastRefiner:
         """Anchor ``k`` of a large gallery: computed now if it is not held, the least recently used dropped beyond
         ``templates.keep``."""
         with templates.lock:
-            levels = templates.anchors[k]
-            if levels is not None:
+            if templates.anchors[k] is not None:
                 templates.computed.move_to_end(k)
-                return (levels, None if templates.foreground is None else templates.foreground[k],
-                        None if templates.outside is None else templates.outside[k])
+                return templates.held(k)
         found = self._source_anchor(templates.source[k:k + 1].detach().float().cpu())
         with templates.lock:
             templates.anchors[k] = found[0]
@@ -316,8 +314,7 @@ class FastRefiner:
         if side is None or side >= size:
             if templates.keep is not None:
                 return self._at_first_need(templates, int(k))
-            return (templates.anchors[k], None if templates.foreground is None else templates.foreground[k],
-                    None if templates.outside is None else templates.outside[k])
+            return templates.held(k)
         key = (int(k), side)
         found = templates.resampled.get(key)
         if found is not None:

@@ -138,6 +138,11 @@ class AnchorTemplates:
     def __len__(self) -> int:
         return len(self.anchors)
 
+    def held(self, k: int) -> tuple[list[AnchorLevel] | None, list[AnchorLevel] | None, np.ndarray | None]:
+        """Anchor ``k``'s ``(levels, region=auto's foreground levels, outside mask)`` as held (None where not)."""
+        return (self.anchors[k], None if self.foreground is None else self.foreground[k],
+                None if self.outside is None else self.outside[k])
+
     @property
     def nbytes(self) -> int:
         """Memory held, bytes."""
