@@ -299,7 +299,6 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
         MatlError: a bad option, no usable gallery, or no readable query image at all (then nothing
             is written; with some readable images the others are reported and the run succeeds).
     """
-
     from matl.utils.io import atomic_write, check_output_file, check_output_folder, overwrite_option
 
     validate_config(cfg)  # batch_size, fills, device, image_size: before the checkpoint is read
