@@ -220,6 +220,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             of its visible textured pixels where that verifies better (:mod:`matl.inference.flow_pose`);
             ``unverified`` (answers that do not verify); ``none``; or a :class:`~matl.inference.flow_pose.FlowPose`
             with its own settings.
+        pose_judge: how the flow pose is judged against the answer's pose: ``both`` (default: the sum of the two
+            distances below), ``explained`` (how badly the anchor, warped into the query by each pose, explains the
+            query's visible foreground, over the same pixels for both poses:
+            :func:`~matl.inference.verify.explained_distance`) or ``verification`` (the verification distance, in
+            the anchor's frame, over the part of the plane each pose puts under the query's mask).
         refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
             unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
             query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
@@ -257,6 +262,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.refine_check = settings.refine_check
         self.keypoint_pose: KeypointPose = settings.keypoint_pose
         self.flow_pose: FlowPose = settings.flow_pose
+        self.pose_judge = settings.pose_judge
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -471,7 +477,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         return {"search": "faiss" if name is FaissSearch else "exact" if name is ExactSearch else str(name),
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
                 "keypoint_pose": self.keypoint_pose.options(),
-                "flow_pose": self.flow_pose.options(),
+                "flow_pose": self.flow_pose.options(), "pose_judge": self.pose_judge,
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,

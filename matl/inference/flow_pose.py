@@ -10,12 +10,15 @@ the query shows (its visibility warped by the same pose): the occluder's and the
 fit, composed with the answer's pose, is the flow pose.
 
 It is tried for every answer whose verification distance is above ``above`` (``mode=always``, the default) or for
-those that do not verify (``unverified``), and replaces the answer's pose where its verification distance is lower
-(:func:`~matl.inference.verify.verification_distance` over the query's visibility): it never changes the product or
-the plane, and an answer it alone brings under ``verify_max`` is not counted as verified: the open set judges it by its
-statistic, because the flow can fit a near twin's print to an unenrolled product's crop well enough to verify. It is
-not refined afterwards: from a flow pose under an occluder the refinement moves the pose away more often than
-closer.
+those that do not verify (``unverified``), and replaces the answer's pose where it is judged better (the
+Recognizer's ``pose_judge``: by default the sum of its verification distance,
+:func:`~matl.inference.verify.verification_distance` over the query's visibility, and of
+:func:`~matl.inference.verify.explained_distance`, which compares both poses over the query's own visible pixels,
+so neither a pose that shrinks the plane onto a few well-matching pixels nor one that stretches it over the mask
+wins by that alone): it never changes the product or the plane, and an answer it alone brings under ``verify_max`` is
+not counted as verified: the open set judges it by its statistic, because the flow can fit a near twin's print to an
+unenrolled product's crop well enough to verify. It is not refined afterwards: from a flow pose under an occluder the
+refinement moves the pose away more often than closer.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import torch
 
 from matl.inference.images import _with_rows
 from matl.inference.stage_settings import StageSettings
-from matl.inference.verify import Verification
+from matl.inference.verify import Verification, explained_distance
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 from matl.utils.timing import stage
@@ -209,7 +212,9 @@ class FlowPoses:
                     ) -> tuple[Prediction, Verification]:
         """``pred`` and ``verification`` with the flow pose of each answer it applies to (``flow_pose``: those that do
         not verify, or all whose verification distance is above ``above``; not those enlarged more than
-        ``max_upscale``) where its verification distance is lower than the answer's; ``queries`` ``(B, 3, S, S)`` and
+        ``max_upscale``) where it is judged better than the answer's pose (``pose_judge``: ``explained``, the anchor
+        warped into the query explains its visible foreground better; ``verification``: a lower verification
+        distance); ``queries`` ``(B, 3, S, S)`` and
         ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them, ``upscale`` ``(B,)`` each file's
         enlargement to the model's size (None: not known, every query)."""
         settings: FlowPose = self.flow_pose
@@ -232,8 +237,17 @@ class FlowPoses:
             at = [i for i, _ in found]
             index = pred.gallery_index[at].cpu()
             poses = torch.stack([p for _, p in found])
-            distance = self._pose_check(queries[at], poses, index, None if visibility is None else visibility[at])
-            better = [j for j, i in enumerate(at) if float(distance[j]) < float(verification.distance[i])]
+            seen = None if visibility is None else visibility[at]
+            distance = self._pose_check(queries[at], poses, index, seen)
+            if self.pose_judge == "verification":
+                better = [j for j, i in enumerate(at) if float(distance[j]) < float(verification.distance[i])]
+            else:  # both poses over the query's own pixels
+                anchors = images[index.to(images.device)]
+                judged = explained_distance(queries[at].repeat(2, 1, 1, 1), torch.cat([poses, pred.query_H_anchor[
+                    at].double().cpu()]), anchors.repeat(2, 1, 1, 1), None if seen is None else seen.repeat(2, 1, 1, 1))
+                if self.pose_judge == "both":
+                    judged += torch.cat([distance, verification.distance[at].cpu()]).to(judged)
+                better = [j for j in range(len(at)) if float(judged[j]) < float(judged[len(at) + j])]
             if not better:
                 return pred, verification
             take = [at[j] for j in better]

@@ -26,11 +26,13 @@ from matl.inference.verify import VERIFY_STATISTICS
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
 
-__all__ = ["OPEN_SET_STATISTICS", "REFINE_CHECKS", "RecognizerOptions"]
+__all__ = ["OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOptions"]
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
 #: second judges of a refined pose (Recognizer's ``refine_check``)
 REFINE_CHECKS = ("none", "verify")
+#: how the flow pose is judged against the answer's pose (Recognizer's ``pose_judge``)
+POSE_JUDGES = ("both", "explained", "verification")
 
 
 def _search_factory(search: str | SearchFactory | None) -> SearchFactory:
@@ -96,6 +98,7 @@ class RecognizerOptions:
     refine_check: str = "none"
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
+    pose_judge: str = "both"
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -139,6 +142,8 @@ class RecognizerOptions:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
         self.keypoint_pose = _stage(self.keypoint_pose, KeypointPose, "keypoint_pose")
         self.flow_pose = _stage(self.flow_pose, FlowPose, "flow_pose")
+        if self.pose_judge not in POSE_JUDGES:
+            raise MatlError(f"pose_judge={self.pose_judge!r} is invalid: use {' or '.join(POSE_JUDGES)}")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)

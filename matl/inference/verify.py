@@ -45,7 +45,8 @@ from numba import njit
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
-           "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
+           "explained_distance", "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc",
+           "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -73,6 +74,12 @@ MIN_PATCHES = 6
 PATCH_STRICTNESS = 3.5
 #: ``patches``: smallest visible share of the anchor's plane a comparison needs (``verify_min_visible``)
 MIN_VISIBLE = 0.3
+#: :func:`explained_distance`: the query frame is cut into this many cells per side (docs/decisions.md) ...
+EXPLAINED_CELLS = 10
+#: ... a cell counts when at least this share of it is the query's visible foreground ...
+EXPLAINED_FILL = 0.3
+#: ... and costs 1 unless the warped plane covers at least this share of that foreground
+EXPLAINED_COVER = 0.5
 
 
 def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
@@ -361,6 +368,50 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         robust = _trimmed(cells, PATCH_KEEP, MIN_PATCHES) * PATCH_STRICTNESS
         return torch.where(enough, torch.minimum(whole, robust), torch.ones_like(whole)).cpu()
     return (1.0 - zncc(warped, anchors, mask).masked_fill(~covered, 0.0)).cpu()
+
+
+def explained_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
+                       visibility: torch.Tensor | None = None, cells: int = EXPLAINED_CELLS,
+                       fill: float = EXPLAINED_FILL, cover: float = EXPLAINED_COVER) -> torch.Tensor:
+    """How badly each anchor, warped into its query's frame by the pose, explains the query's visible foreground.
+
+    :func:`verification_distance` compares in the anchor's frame, over the part of the plane a pose puts under the
+    query's mask: two poses of one answer are compared over different pixels, and a pose that shrinks or slides the
+    plane onto a few well-matching pixels of a partly hidden product can score better than the true one. Here the
+    pixels are the query's own, the same for every pose: the query frame is cut into ``cells`` x ``cells`` cells; a
+    cell counts when at least ``fill`` of it is visible foreground (weighted by that area); it costs 1 when the warped
+    anchor's plane (eroded by 1 px) covers less than ``cover`` of its foreground (the pose leaves the query's
+    product unexplained there), else ``1 - ZNCC`` of query and warped anchor over the covered foreground (channels
+    pooled, no smoothing). An occluder the mask kept costs every pose alike.
+
+    Args:
+        queries: ``(B, 3, S, S)`` model-size queries; query_H_anchor: ``(B, 3, 3)`` pixel, anchor -> query;
+        anchors: ``(B, 3, S, S)`` the anchors the poses are against (zero outside the plane).
+        visibility: ``(B, 1, S, S)`` the queries' visibility in [0, 1] (visible above 0.5); None: the queries'
+            non-empty pixels.
+    Returns:
+        ``(B,)`` float64 in [0, 2] (lower: explained better); 1 where no cell counts.
+    """
+    if len(queries) == 0:
+        return torch.zeros(0, dtype=torch.float64)
+    S = queries.shape[-1]
+    anchors = anchors.to(queries.device, queries.dtype)
+    plane = anchor_foreground(anchors).to(queries.dtype)
+    anchor_H_query = torch.linalg.inv(query_H_anchor.double().to(queries.device))
+    warped = sample_by_normalised(torch.cat([anchors, plane], 1),
+                                  pixel_to_normalised(anchor_H_query, (S, S)).to(queries.dtype))
+    seen = (queries.amax(1, keepdim=True) > 0) if visibility is None else visibility.to(queries.device) > 0.5
+    covered = seen & (warped[:, 3:4] > 0.5)
+    count, sums, area = _cell_sums(queries.contiguous(), warped[:, :3].contiguous(),
+                                   covered.to(queries.dtype).contiguous(), cells)
+    _, _, corr = _correlations(count, sums)
+    side = -(-S // cells)
+    shown = F.avg_pool2d(F.pad(seen.double(), (0, cells * side - S, 0, cells * side - S)), side)[:, 0] * area
+    cost = torch.where(count >= cover * shown, 1.0 - corr, torch.ones_like(corr))
+    weight = torch.where(shown >= fill * area, shown, torch.zeros_like(shown)).flatten(1)
+    total = weight.sum(1)
+    return torch.where(total > 0, (cost.flatten(1) * weight).sum(1) / total.clamp_min(1e-9),
+                       torch.ones_like(total)).cpu()
 
 
 @dataclass

@@ -161,3 +161,19 @@ def test_a_query_enlarged_beyond_max_upscale_is_left_alone(gallery: Path) -> Non
 def test_a_bad_flow_pose_option_is_a_one_line_error() -> None:
     with pytest.raises(MatlError, match="flow_pose=3 is invalid"):
         off_pose_recognizer(0.0, flow_pose=3)
+
+
+@pytest.mark.parametrize("judge", ["both", "explained", "verification"])
+def test_every_pose_judge_takes_the_better_flow_pose_and_the_true_one_stays(gallery: Path, judge: str) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    off = off_pose_recognizer(4.0, pose_judge=judge).enrol(gallery, cache=False)
+    assert off.options()["pose_judge"] == judge and error_px(off.predict(query).H) < 3.0
+    plain = off_pose_recognizer(0.0, flow_pose="none").enrol(gallery, cache=False).predict(query)
+    judged = off_pose_recognizer(0.0, pose_judge=judge).enrol(gallery, cache=False).predict(query)
+    assert error_px(judged.H) <= max(error_px(plain.H), 0.5)
+
+
+def test_a_bad_pose_judge_is_a_one_line_error() -> None:
+    with pytest.raises(MatlError, match="pose_judge='median' is invalid: use both or explained or verification"):
+        off_pose_recognizer(0.0, pose_judge="median")
+    assert off_pose_recognizer(0.0).options()["pose_judge"] == "both"  # the default

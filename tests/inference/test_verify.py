@@ -15,6 +15,7 @@ from matl.inference.verify import (
     PATCH_CELLS,
     aligned_queries,
     anchor_foreground,
+    explained_distance,
     gaussian_blur,
     patch_distances,
     verification_distance,
@@ -337,3 +338,28 @@ def test_the_cpu_fast_path_equals_the_torch_reference() -> None:
         assert fast[2] == slow[2]
         assert torch.allclose(fast[0], slow[0], rtol=1e-12, atol=1e-12)
         assert torch.allclose(fast[1], slow[1], rtol=1e-12, atol=1e-12)
+
+
+def test_explained_distance_judges_poses_over_the_query_s_own_pixels() -> None:
+    anchor = textured(1, 64).float()
+    # the query: the anchor's plane under a gain and bias, shifted by (2, -1) px; query_H_anchor maps anchor -> query
+    query = torch.zeros_like(anchor)
+    query[..., :63, 2:] = torch.where(anchor > 0, 0.6 * anchor + 0.1, anchor)[..., 1:, :-2]
+    true, off = shift(2.0, -1.0), shift(0.0, 0.0)
+    assert float(explained_distance(query, true, anchor)[0]) == pytest.approx(0.0, abs=1e-6)
+    assert float(explained_distance(query, off, anchor)[0]) > 0.05
+    # a pose that slides the plane half out of the query leaves half of the query's foreground unexplained: those
+    # cells cost 1 each, where the anchor frame's comparison only sees the half that still overlaps
+    half = shift(34.0, -1.0)
+    assert float(explained_distance(query, half, anchor)[0]) > 0.4
+    # an occluder the mask marks hidden is no pixel of the judge: the true pose stays exact
+    hidden = occluded(query, 24, 40, textured(5, 64).float())
+    mask = (query.amax(1, keepdim=True) > 0).float()  # the query's product ...
+    mask[..., :, 24:40] = 0.0                         # ... less the bar
+    assert float(explained_distance(hidden, true, anchor, mask)[0]) == pytest.approx(0.0, abs=1e-6)
+    # kept in the visibility it costs both poses, and the true one still explains the query better
+    kept = explained_distance(hidden.repeat(2, 1, 1, 1), torch.cat([true, off]), anchor.repeat(2, 1, 1, 1))
+    assert 0.05 < float(kept[0]) < float(kept[1])
+    # nothing visible: no cell counts; no query: nothing to judge
+    assert float(explained_distance(query, true, anchor, torch.zeros(1, 1, 64, 64))[0]) == 1.0
+    assert explained_distance(query[:0], true[:0], anchor[:0]).shape == (0,)
