@@ -33,7 +33,7 @@ import torch
 
 from matl.inference.images import _with_rows
 from matl.inference.stage_settings import StageSettings
-from matl.inference.verify import Verification, explained_distance
+from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
 from matl.utils.timing import stage
@@ -239,15 +239,10 @@ class FlowPoses:
             poses = torch.stack([p for _, p in found])
             seen = None if visibility is None else visibility[at]
             distance = self._pose_check(queries[at], poses, index, seen)
-            if self.pose_judge == "verification":
-                better = [j for j, i in enumerate(at) if float(distance[j]) < float(verification.distance[i])]
-            else:  # both poses over the query's own pixels
-                anchors = images[index.to(images.device)]
-                judged = explained_distance(queries[at].repeat(2, 1, 1, 1), torch.cat([poses, pred.query_H_anchor[
-                    at].double().cpu()]), anchors.repeat(2, 1, 1, 1), None if seen is None else seen.repeat(2, 1, 1, 1))
-                if self.pose_judge == "both":
-                    judged += torch.cat([distance, verification.distance[at].cpu()]).to(judged)
-                better = [j for j in range(len(at)) if float(judged[j]) < float(judged[len(at) + j])]
+            flowed = self._judged(queries[at], poses, index, seen, distance)
+            answered = self._judged(queries[at], pred.query_H_anchor[at].double().cpu(), index, seen,
+                                    verification.distance[at])
+            better = [j for j in range(len(at)) if float(flowed[j]) < float(answered[j])]
             if not better:
                 return pred, verification
             take = [at[j] for j in better]

@@ -15,7 +15,13 @@ import torch
 from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.images import _with_rows
-from matl.inference.verify import CandidatePose, Verification, verification_distance, verify_candidates
+from matl.inference.verify import (
+    CandidatePose,
+    Verification,
+    explained_distance,
+    verification_distance,
+    verify_candidates,
+)
 from matl.models.prediction import Prediction
 
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
@@ -60,6 +66,18 @@ class Verifying:
         return verification_distance(queries, query_H_anchor, gallery.images[gallery_index.to(gallery.images.device)],
                                      self.verify_blur, skip_empty=True, visibility=visibility,
                                      statistic=self.verify_statistic, min_visible=self.verify_min_visible)
+
+    def _judged(self, queries: torch.Tensor, query_H_anchor: torch.Tensor, gallery_index: torch.Tensor,
+                visibility: torch.Tensor | None, distance: torch.Tensor) -> torch.Tensor:
+        """``pose_judge``'s value ``(T,)`` of each pose ``(T, 3, 3)`` of ``(T, 3, S, S)`` queries against gallery anchor
+        ``gallery_index`` ``(T,)`` whose verification distance is ``distance`` ``(T,)`` (lower is better): that
+        distance (``verification``), :func:`~matl.inference.verify.explained_distance` (``explained``) or their sum
+        (``both``)."""
+        if self.pose_judge == "verification":
+            return distance.double().cpu()
+        images = self._build()[1].images
+        explained = explained_distance(queries, query_H_anchor, images[gallery_index.to(images.device)], visibility)
+        return explained + distance.double().cpu() if self.pose_judge == "both" else explained
 
     def _candidate_refiner(self) -> tuple[FastRefiner, Any]:
         """The refiner of ``verify_refine``'s candidates and its per-anchor data, built when a candidate first needs
