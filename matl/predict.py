@@ -29,6 +29,11 @@ nothing is written and the command exits 2 naming the files. ``viz=true`` writes
 per query: the plane outlined on the query by ``H``, the query warped into the anchor frame by the
 homography that produced ``H`` (the refined one with ``refine=true``), the anchor; an unknown
 query's outline and verdict are red.
+
+Large query sets split over processes or hosts: ``shard=<k> shards=<K>`` answers the files ``k, k + K, ...`` of the
+sorted list, e.g. ``python -m matl.predict -m ... shards=4 'shard=range(4)' hydra/launcher=joblib`` (each job writes
+``predictions.jsonl`` in its own folder of the sweep); ``python -m matl.score predictions=<the sweep folder>
+truth=...`` scores them as one run.
 """
 
 from __future__ import annotations
@@ -38,11 +43,11 @@ from omegaconf import DictConfig
 from matl.utils.cli import command
 
 
-@command("predict")
-def main(cfg: DictConfig) -> None:
+@command("predict", sweepable=True)
+def main(cfg: DictConfig) -> int:
     from matl.inference.files import predict  # torch and the models load after composition
 
-    predict(cfg)
+    return predict(cfg)["predicted"]  # under -m (shards) a failing job writes failed.json and the others go on
 
 
 if __name__ == "__main__":

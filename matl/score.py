@@ -1,7 +1,8 @@
 """``python -m matl.score predictions=<file.jsonl> truth=<file.jsonl> (ckpt=<path> | image_size=<S>)``.
 
-Scores the JSON lines of ``matl.predict`` against a ground-truth sidecar with the the metrics of docs/design.md,
-for any gallery and query folder: the synthetic never-seen-products measurement of ``matl.unseen``
+Scores the JSON lines of ``matl.predict`` (one file, or a folder of them: every ``*.jsonl`` under it, as
+``matl.predict shard=<k> shards=<K>`` writes its shards) against a ground-truth sidecar with the metrics of
+docs/design.md, for any gallery and query folder: the synthetic never-seen-products measurement of ``matl.unseen``
 writes such a sidecar, and so can a robotics engineer who knows what is in their own camera crops.
 
 Ground truth: one JSON line per query file::

@@ -467,6 +467,25 @@ def gallery_file(ctx: Ctx) -> Path:
     return ctx.tmp / "gallery.pt"
 
 
+def predict_shard(args: list[str]) -> Callable[[Ctx], Any]:
+    """predict of one query file with ``args`` (``shard=``, ``shards=``)."""
+    def run(ctx: Ctx) -> Any:
+        queries = png(ctx.tmp / "q" / "q.png", colour())
+        return predict(predict_cfg(ctx, ctx.checkpoint(), good_gallery(ctx.tmp / "gallery"), queries.parent, args))
+    return run
+
+
+def score_overlapping_shards(ctx: Ctx) -> subprocess.CompletedProcess:
+    """matl.score of a folder whose two shard files both answer one query."""
+    (ctx.tmp / "truth.jsonl").write_text(json.dumps({"image": "q.png", "object": "tea"}) + "\n")
+    for k in range(2):
+        (ctx.tmp / "shards" / str(k)).mkdir(parents=True)
+        (ctx.tmp / "shards" / str(k) / "predictions.jsonl").write_text(json.dumps({"image": "q.png", "object": "tea"})
+                                                                       + "\n")
+    return run_cli(ctx, "matl.score", [f"predictions={ctx.tmp / 'shards'}", f"truth={ctx.tmp / 'truth.jsonl'}",
+                                       f"ckpt={ctx.checkpoint()}", f"out={ctx.tmp / 'scored'}"])
+
+
 def enrol_cli(args: list[str]) -> Callable[[Ctx], Any]:
     """``python -m matl.enrol`` on a good gallery with ``args``."""
     def run(ctx: Ctx) -> subprocess.CompletedProcess:
@@ -627,6 +646,11 @@ CASES = [
     call("enrol: shards=0", enrol_cli(["shards=0"]), "shards=0 is invalid"),
     call("enrol: shard= with save= (a shard fills the cache only)", enrol_cli(["shard=0", "shards=2", "save=g.pt"]),
          "shard= fills the gallery's cache only"),
+    call("predict: shard=1 of shards=1", predict_shard(["shard=1", "shards=1"]), "shard=1 is invalid"),
+    call("predict: a shard with no file (more shards than files)", predict_shard(["shard=1", "shards=2"]),
+         "shard=1 of shards=2 holds no file"),
+    call("score: a folder of shard files answering one image twice", score_overlapping_shards,
+         "is answered in both"),
     # --- checkpoints
     call("checkpoint: missing file (predict)", predict_with_checkpoint(lambda c: c.tmp / "missing.ckpt"), "not found"),
     call("checkpoint: missing file (eval ckpt=)", eval_with(lambda c: c.tmp / "missing.ckpt"), "not found"),

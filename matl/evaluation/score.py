@@ -77,6 +77,28 @@ def _read_jsonl(path: Path, what: str) -> list[tuple[int, dict[str, Any]]]:
     return rows
 
 
+def read_predictions(path: str | Path) -> list[dict[str, Any]]:
+    """predict's JSON lines: one file, or every ``*.jsonl`` under a folder (the shards of ``matl.predict
+    shard=<k> shards=<K>``, each one's ``out=``), merged; an image answered in two files is a one-line error (shards
+    that overlap, or a folder holding two runs)."""
+    path = Path(path).expanduser()
+    files = sorted(p for p in path.rglob("*.jsonl") if p.is_file()) if path.is_dir() else [path]
+    if not files:
+        raise MatlError(f"predictions={path}: the folder holds no .jsonl file (give predict's out= file, or the "
+                        "folder of its shards' files)")
+    records: list[dict[str, Any]] = []
+    first: dict[str, Path] = {}
+    for file in files:
+        for _, row in _read_jsonl(file, "predictions"):
+            image = str(row.get("image", ""))
+            if image in first:
+                raise MatlError(f"predictions={path}: {image} is answered in both {first[image]} and {file}: give "
+                                "the files of one run's shards (each file answered once)")
+            first[image] = file
+            records.append(row)
+    return records
+
+
 def read_truth(path: str | Path) -> list[Truth]:
     """The ground-truth sidecar (see the module docstring); paths resolved against its folder."""
     path = Path(path).expanduser()
@@ -268,7 +290,7 @@ def score_files(predictions: str | Path, truth: str | Path, image_size: int, gal
     """Read a predict JSONL and a truth sidecar and :func:`score` them."""
     truth_path = Path(truth).expanduser()
     labelled = read_truth(truth_path)
-    records = [row for _, row in _read_jsonl(Path(predictions).expanduser(), "predictions")]
+    records = read_predictions(predictions)
     matched = match_predictions(labelled, records, truth_path.parent.resolve())
     summary, rows = score(labelled, matched, image_size, gallery_fill, query_fill, truth_path.parent.resolve())
     summary.update(predictions=str(predictions), truth=str(truth))

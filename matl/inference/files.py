@@ -235,6 +235,17 @@ def _resolve_model(cfg: DictConfig) -> None:
         checkpoint.resolve_ckpt_option(cfg)
 
 
+def _shard_option(cfg: DictConfig, whole: str) -> tuple[int | None, int]:
+    """``(shard or None, shards)`` of a config, checked (``whole``: what a run without ``shard`` takes)."""
+    shard, shards = cfg.get("shard"), cfg.get("shards", 1)
+    if not isinstance(shards, int) or isinstance(shards, bool) or shards < 1:
+        raise MatlError(f"shards={shards} is invalid: use an integer >= 1 (the number of shards)")
+    if shard is not None and (not isinstance(shard, int) or isinstance(shard, bool) or not 0 <= shard < shards):
+        raise MatlError(f"shard={shard} is invalid: use an integer in [0, shards={shards}) or null (the whole "
+                        f"{whole})")
+    return shard, shards
+
+
 def enrol(cfg: DictConfig) -> dict[str, Any]:
     """Run enrol for a composed ``conf/enrol.yaml``: the gallery folder's per-product feature cache filled (one
     shard of its products with ``shard``), and with ``save`` the whole gallery written for ``Recognizer.load``;
@@ -255,12 +266,7 @@ def enrol(cfg: DictConfig) -> dict[str, Any]:
                         "[shard=<k> shards=<K>]")
     if not Path(str(cfg.gallery)).expanduser().is_dir():
         raise MatlError(f"gallery={cfg.gallery}: no such folder")
-    shard, shards = cfg.get("shard"), cfg.get("shards", 1)
-    if not isinstance(shards, int) or isinstance(shards, bool) or shards < 1:
-        raise MatlError(f"shards={shards} is invalid: use an integer >= 1 (the number of shards)")
-    if shard is not None and (not isinstance(shard, int) or isinstance(shard, bool) or not 0 <= shard < shards):
-        raise MatlError(f"shard={shard} is invalid: use an integer in [0, shards={shards}) or null (the whole "
-                        "gallery)")
+    shard, shards = _shard_option(cfg, "gallery")
     if shard is not None and (cfg.get("save") or not cfg.cache):
         raise MatlError("shard= fills the gallery's cache only: drop save= and cache=false, and save from a run "
                         "without shard= once every shard is done")
@@ -306,6 +312,7 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
     runtime_option(cfg)  # runtime=torch|onnxruntime
     _threshold(cfg)
     overwrite = overwrite_option(cfg)
+    shard, shards = _shard_option(cfg, "set of query files")
     for key in ("gallery", "images", "out"):
         if cfg.get(key) in (None, ""):
             raise MatlError(f"{key}=... is required: python -m matl.predict gallery=<dir> images=<dir or file> "
@@ -317,6 +324,11 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
     files = list_image_candidates(cfg.images, bool(cfg.get("recursive", False)))
     if not files:
         raise MatlError(f"images={cfg.images} holds no files")
+    if shard is not None:  # files k, k + K, ... of the sorted list: shards together answer every file once
+        files = files[shard::shards]
+        if not files:
+            raise MatlError(f"shard={shard} of shards={shards} holds no file: images={cfg.images} has fewer files "
+                            "than shards; use shards=<at most the number of files>")
     _resolve_model(cfg)
     baseline = None
     if cfg.get("baseline") is not None:  # a keypoint baseline on the same files, framed the same way
@@ -349,6 +361,7 @@ def predict(cfg: DictConfig, baseline_name: str | None = None) -> dict[str, Any]
                "image_size": recognizer.image_size, "N": recognizer.num_anchors,
                "gallery_objects": len(gallery.object_names), "gallery_planes": len(recognizer.planes),
                "unknown": unknown, "threshold": recognizer.threshold,
-               "viz_dir": None if viz_dir is None else str(viz_dir), **recognizer.options()}
+               "viz_dir": None if viz_dir is None else str(viz_dir), "shard": shard, "shards": shards,
+               **recognizer.options()}
     log.info("predict: %s", json.dumps(summary))
     return summary

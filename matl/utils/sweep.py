@@ -193,7 +193,7 @@ class SweepSummary(_HydraCallback):  # type: ignore[misc]
         sweep_dir = Path(str(config.hydra.sweep.dir))
         failed = sorted(sweep_dir.glob(f"*/{FAILED_FILE}")) if sweep_dir.is_dir() else []
         done = [*sorted(sweep_dir.glob(f"*/{METRICS_FILE}")), *sorted(sweep_dir.glob("*/eval.json")),
-                *sorted(sweep_dir.glob("*/enrol.json"))]
+                *sorted(sweep_dir.glob("*/enrol.json")), *sorted(sweep_dir.glob("*/predictions.jsonl"))]
         if not failed:
             log.info("sweep %s: %d job(s) with results, none failed", sweep_dir, len(done))
             return

@@ -68,6 +68,28 @@ def test_perfect_predictions_score_one_and_wrong_ones_zero(tmp_path: Path, crop:
     assert sum(c["count"] for c in summary["confusions"]) == 12
 
 
+def test_a_folder_of_shard_files_scores_as_their_one_file(tmp_path: Path) -> None:
+    truth_path, truth = write_case(tmp_path)
+    records = [{"image": r["image"], "object": r["object"], "plane": r["plane"], "H": r["H"],
+                "gallery_image": r["gallery_image"]} for r in truth]
+    whole = write_predictions(tmp_path / "all.jsonl", records)
+    shards = tmp_path / "shards"
+    for k in range(3):  # as predict shard=k shards=3 writes them, one sub-folder per job of a sweep
+        (shards / str(k)).mkdir(parents=True)
+        write_predictions(shards / str(k) / "predictions.jsonl", records[k::3])
+    merged, _ = score_files(shards, truth_path, 40)
+    single, _ = score_files(whole, truth_path, 40)
+    assert {k: v for k, v in merged.items() if k != "predictions"} == {k: v for k, v in single.items()
+                                                                       if k != "predictions"}
+    assert merged["num_queries"] == 12 and merged["missing_predictions"] == 0
+    write_predictions(shards / "again.jsonl", records[:1])  # an image answered twice: overlapping shards
+    with pytest.raises(MatlError, match="is answered in both"):
+        score_files(shards, truth_path, 40)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(MatlError, match=r"holds no \.jsonl file"):
+        score_files(tmp_path / "empty", truth_path, 40)
+
+
 def test_pose_error_and_missing_predictions(tmp_path: Path) -> None:
     truth_path, truth = write_case(tmp_path)
     shift = np.array([[1.0, 0, 4.0], [0, 1.0, -3.0], [0, 0, 1.0]])  # the estimate is 5 px off at the query

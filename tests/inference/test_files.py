@@ -282,3 +282,31 @@ def test_enrol_in_shards_then_merge_and_save(tiny_run: Path, tmp_path: Path) -> 
     query = str(queries / "red_box.png")
     a, b = loaded.predict(query), enrolled.predict(query)
     assert (a.object, a.known, a.distance) == (b.object, b.known, b.distance)
+
+
+def test_predict_in_shards_answers_every_file_once_as_one_run_does(tiny_run: Path, tmp_path: Path) -> None:
+    """predict shard=k shards=K: files k, k + K, ... of the sorted list; the shards' files together are one run's."""
+    from matl.evaluation.score import read_predictions
+
+    ckpt = tiny_run / "checkpoints" / "best.ckpt"
+    gallery, queries, _ = make_files(tmp_path)
+
+    def run(out: Path, *extra: str) -> dict:
+        return predict(compose_config("predict", [f"ckpt={ckpt}", f"gallery={gallery}", f"images={queries}",
+                                                  f"out={out}", "threshold=null", *extra], tmp_path / "run"))
+
+    whole = run(tmp_path / "all.jsonl")
+    parts = [run(tmp_path / "shards" / f"{k}.jsonl", f"shard={k}", "shards=2") for k in range(2)]
+    assert [p["predicted"] for p in parts] == [2, 1] and whole["predicted"] == 3
+    assert (parts[1]["shard"], parts[1]["shards"], whole["shard"]) == (1, 2, None)
+    by_image = {r["image"]: r for r in read_predictions(tmp_path / "all.jsonl")}
+    merged = read_predictions(tmp_path / "shards")
+    assert sorted(r["image"] for r in merged) == sorted(by_image)
+    for record in merged:  # the same answer as in the one run
+        one = by_image[record["image"]]
+        assert (record["object"], record["plane"]) == (one["object"], one["plane"])
+        np.testing.assert_allclose(record["H"], one["H"], rtol=1e-5, atol=1e-4)  # float32 batches of 3 and 2
+    with pytest.raises(MatlError, match="shard=3 of shards=4 holds no file"):
+        run(tmp_path / "none.jsonl", "shard=3", "shards=4")
+    with pytest.raises(MatlError, match=r"shard=2 is invalid: use an integer in \[0, shards=2\)"):
+        run(tmp_path / "bad.jsonl", "shard=2", "shards=2")
