@@ -212,11 +212,10 @@ class FlowPoses:
                     ) -> tuple[Prediction, Verification]:
         """``pred`` and ``verification`` with the flow pose of each answer it applies to (``flow_pose``: those that do
         not verify, or all whose verification distance is above ``above``; not those enlarged more than
-        ``max_upscale``) where it is judged better than the answer's pose (``pose_judge``: ``explained``, the anchor
-        warped into the query explains its visible foreground better; ``verification``: a lower verification
-        distance); ``queries`` ``(B, 3, S, S)`` and
-        ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them, ``upscale`` ``(B,)`` each file's
-        enlargement to the model's size (None: not known, every query)."""
+        ``max_upscale``) where it is judged better than the answer's pose (``pose_judge``, :meth:`_judged`: by
+        default the verification distance plus how badly the anchor, warped into the query, explains its visible
+        foreground); ``queries`` ``(B, 3, S, S)`` and ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw
+        them, ``upscale`` ``(B,)`` each file's enlargement to the model's size (None: not known, every query)."""
         settings: FlowPose = self.flow_pose
         rows = [i for i in range(len(queries)) if (not bool(verification.verified[i]) or (
             settings.mode == "always" and float(verification.distance[i]) > settings.above)) and (
