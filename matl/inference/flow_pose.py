@@ -35,6 +35,7 @@ from matl.inference.images import _with_rows
 from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
+from matl.utils.config import is_int, is_number
 from matl.utils.errors import MatlError
 from matl.utils.timing import stage
 
@@ -48,11 +49,7 @@ FLOW_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.D
 
 
 def _integer(value: Any, low: int, high: int) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return is_int(value) and low <= value <= high
 
 
 def _luminance_u8(image: torch.Tensor, side: int) -> np.ndarray:
@@ -110,7 +107,7 @@ class FlowPose(StageSettings):
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
             raise MatlError(f"flow_pose={self.mode!r} is invalid: use {', '.join(FLOW_POSE_MODES)}")
-        if not _number(self.above) or not 0.0 <= self.above <= 2.0:
+        if not is_number(self.above) or not 0.0 <= self.above <= 2.0:
             raise MatlError(f"FlowPose above={self.above!r} is invalid: use a verification distance in [0, 2] (0: "
                             "every answer)")
         if not _integer(self.scale, 1, 8):
@@ -123,23 +120,23 @@ class FlowPose(StageSettings):
         if not _integer(self.variational_iterations, 0, 100):
             raise MatlError(f"FlowPose variational_iterations={self.variational_iterations!r} is invalid: use an "
                             "integer in [0, 100]")
-        if not _number(self.reproj_threshold) or not self.reproj_threshold > 0:
+        if not is_number(self.reproj_threshold) or not self.reproj_threshold > 0:
             raise MatlError(f"FlowPose reproj_threshold={self.reproj_threshold!r} is invalid: use a distance in "
                             "model px > 0")
         if not _integer(self.min_points, 4, 1_000_000) or not _integer(self.max_points, self.min_points, 1_000_000):
             raise MatlError(f"FlowPose min_points={self.min_points!r}, max_points={self.max_points!r} are invalid: "
                             "use integers with 4 <= min_points <= max_points (a homography needs 4)")
-        if not _number(self.texture) or self.texture < 0:
+        if not is_number(self.texture) or self.texture < 0:
             raise MatlError(f"FlowPose texture={self.texture!r} is invalid: use a gradient magnitude >= 0")
-        if not _number(self.dark) or not 0 <= self.dark < 255:
+        if not is_number(self.dark) or not 0 <= self.dark < 255:
             raise MatlError(f"FlowPose dark={self.dark!r} is invalid: use a luminance in [0, 255) (e.g. 8)")
         self.reproj_threshold, self.texture, self.dark = float(self.reproj_threshold), float(self.texture), float(
             self.dark)
         self.above = float(self.above)
-        if self.max_upscale is not None and (not _number(self.max_upscale) or not self.max_upscale >= 1.0):
+        if self.max_upscale is not None and (not is_number(self.max_upscale) or not self.max_upscale >= 1.0):
             raise MatlError(f"FlowPose max_upscale={self.max_upscale!r} is invalid: use a factor >= 1 or None (every "
                             "query)")
-        if self.verifies is not None and (not _number(self.verifies) or not 0.0 <= self.verifies <= 2.0):
+        if self.verifies is not None and (not is_number(self.verifies) or not 0.0 <= self.verifies <= 2.0):
             raise MatlError(f"FlowPose verifies={self.verifies!r} is invalid: use a verification distance in [0, 2] "
                             "or None (the flow pose never makes an answer count as verified)")
         self._new_workers()  # each thread its own DIS object

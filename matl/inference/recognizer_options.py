@@ -24,6 +24,7 @@ from matl.inference.refine import PhotometricRefiner
 from matl.inference.runtime import RUNTIMES
 from matl.inference.verify import VERIFY_STATISTICS
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
+from matl.utils.config import is_number
 from matl.utils.errors import MatlError
 
 __all__ = ["OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOptions"]
@@ -63,10 +64,6 @@ def _stage(value: Any, settings: type, name: str) -> Any:
     if not isinstance(value, settings):
         raise MatlError(f"{name}={value!r} is invalid: use none, unverified, always or a {settings.__name__}")
     return value
-
-
-def _number(value: Any) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float))
 
 
 @dataclass
@@ -122,19 +119,19 @@ class RecognizerOptions:
         top_k = self.verify_top_k
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 0:
             raise MatlError(f"verify_top_k={top_k!r} is invalid: use an integer >= 0 (0: no verification)")
-        if not _number(self.verify_max) or not 0.0 <= self.verify_max <= 2.0:
+        if not is_number(self.verify_max) or not 0.0 <= self.verify_max <= 2.0:
             raise MatlError(f"verify_max={self.verify_max!r} is invalid: use a 1 - ZNCC level in [0, 2] (e.g. 0.1)")
-        if not _number(self.verify_blur) or not 0.0 <= self.verify_blur <= 10.0:
+        if not is_number(self.verify_blur) or not 0.0 <= self.verify_blur <= 10.0:
             raise MatlError(f"verify_blur={self.verify_blur!r} is invalid: use a Gaussian sigma in px in [0, 10]")
         if not isinstance(self.verify_refine, bool):
             raise MatlError(f"verify_refine={self.verify_refine!r} is invalid: use true or false")
         if self.verify_statistic not in VERIFY_STATISTICS:
             raise MatlError(f"verify_statistic={self.verify_statistic!r} is invalid: use "
                             f"{' or '.join(VERIFY_STATISTICS)}")
-        if not _number(self.verify_min_visible) or not 0.0 <= self.verify_min_visible <= 1.0:
+        if not is_number(self.verify_min_visible) or not 0.0 <= self.verify_min_visible <= 1.0:
             raise MatlError(f"verify_min_visible={self.verify_min_visible!r} is invalid: use a share of the plane in "
                             "[0, 1] (e.g. 0.3)")
-        if not _number(self.verify_occluded_copies) or not 0.0 <= self.verify_occluded_copies <= 1.0:
+        if not is_number(self.verify_occluded_copies) or not 0.0 <= self.verify_occluded_copies <= 1.0:
             raise MatlError(f"verify_occluded_copies={self.verify_occluded_copies!r} is invalid: use a share of the "
                             "calibration's copies in [0, 1] (0: whole copies)")
         self.verify_occluded_copies = float(self.verify_occluded_copies)

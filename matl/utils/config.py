@@ -60,24 +60,26 @@ def _get(cfg: DictConfig, dotted: str, default: Any = None) -> Any:
 
 
 # ----------------------------------------------------------------------------------------- checks
-def _is_int(v: Any) -> bool:
+def is_int(v: Any) -> bool:
+    """An int that is not a bool (True is an int to Python, not to a user)."""
     return isinstance(v, int) and not isinstance(v, bool)  # True is an int to Python, not to a user
 
 
-def _is_number(v: Any) -> bool:
+def is_number(v: Any) -> bool:
+    """A finite int or float that is not a bool."""
     return (isinstance(v, (int, float)) and not isinstance(v, bool)) and math.isfinite(float(v))
 
 
 def int_at_least(low: int) -> Callable[[Any], bool]:
-    return lambda v: _is_int(v) and v >= low
+    return lambda v: is_int(v) and v >= low
 
 
 def number_at_least(low: float) -> Callable[[Any], bool]:
-    return lambda v: _is_number(v) and v >= low
+    return lambda v: is_number(v) and v >= low
 
 
 def number_above(low: float) -> Callable[[Any], bool]:
-    return lambda v: _is_number(v) and v > low
+    return lambda v: is_number(v) and v > low
 
 
 def one_of(*values: Any) -> Callable[[Any], bool]:
@@ -86,11 +88,11 @@ def one_of(*values: Any) -> Callable[[Any], bool]:
 
 
 def fraction(v: Any) -> bool:
-    return _is_number(v) and 0.0 < v <= 1.0
+    return is_number(v) and 0.0 < v <= 1.0
 
 
 def fraction_or_zero(v: Any) -> bool:
-    return _is_number(v) and 0 <= v <= 1
+    return is_number(v) and 0 <= v <= 1
 
 
 def is_bool(v: Any) -> bool:
@@ -139,7 +141,7 @@ RULES: tuple[Rule, ...] = (
     Rule("model.optimizer.lr", number_above(0), "a number > 0 (paper: 0.01)"),
     Rule("model.appearance_levels", int_at_least(1), "an integer >= 1 (paper: 1)"),
     # trainer and callbacks
-    Rule("trainer.max_epochs", lambda v: _is_int(v) and (v >= 1 or v == -1), "an integer >= 1 (or -1 with max_steps)"),
+    Rule("trainer.max_epochs", lambda v: is_int(v) and (v >= 1 or v == -1), "an integer >= 1 (or -1 with max_steps)"),
     Rule("trainer.accelerator", one_of("cpu", "gpu", "cuda", "mps", "tpu", "auto"), "cpu, gpu, cuda, mps, tpu or auto"),
     Rule("trainer.deterministic", one_of(True, False, "warn"), "true, false or warn"),
     Rule("callbacks.model_checkpoint.last_every_n_train_steps", int_at_least(0),
@@ -151,7 +153,7 @@ RULES: tuple[Rule, ...] = (
     Rule("query_fill", fraction, "a fraction in (0, 1]"),
     Rule("timing_queries", int_at_least(0), "an integer >= 0"),
     Rule("foreground.retry_insets", lambda v: isinstance(v, (list, tuple, ListConfig)) and all(
-        _is_number(f) and 0 < f < 0.5 for f in v), "a list of fractions of the crop's side in (0, 0.5), or []"),
+        is_number(f) and 0 < f < 0.5 for f in v), "a list of fractions of the crop's side in (0, 0.5), or []"),
     Rule("image_size", int_at_least(16), "an integer >= 16, or null (the checkpoint's size)"),
 )
 
