@@ -257,9 +257,11 @@ def plot_catalog(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     baselines = [m for m in rows[0]["methods"] if m not in MATL_METHODS]
     for m in baselines:
         acc.plot(sizes, [r["methods"][m].get("rec_acc", np.nan) for r in rows], "s--", label=f"{m} rec_acc")
+    timed = False
     for m in rows[0]["methods"]:
-        ms.plot(sizes, [r["methods"][m].get("query_ms") or np.nan for r in rows], "o-" if m in MATL_METHODS else "s--",
-                label=m)
+        times = [r["methods"][m].get("query_ms") or np.nan for r in rows]
+        timed |= bool(np.isfinite(times).any())
+        ms.plot(sizes, times, "o-" if m in MATL_METHODS else "s--", label=m)
     for ax in (acc, ms):
         ax.set_xscale("log")
         ax.set_xlabel("gallery size (products)")
@@ -267,7 +269,10 @@ def plot_catalog(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
         ax.legend(fontsize=7)
     acc.set_ylim(0, 1.02)
     acc.set_ylabel("share of queries")
-    ms.set_yscale("log")
+    if timed:
+        ms.set_yscale("log")
+    else:  # catalog.timing_queries=0: nothing to put on a log axis
+        ms.text(0.5, 0.5, "not timed (catalog.timing_queries=0)", ha="center", va="center", transform=ms.transAxes)
     ms.set_ylabel("query_ms (median, batch of 1)")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()

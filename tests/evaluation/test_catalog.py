@@ -152,6 +152,10 @@ def test_table_and_plot(tmp_path: Path) -> None:
     assert "| 2000 | 0.900 | 0.700 | 0.500 | 0.800 | 60.0 | 1.0 | - | 600.0 |" in table
     png = plot_catalog(rows, tmp_path / "catalog.png", "title")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # catalog.timing_queries=0: no method timed, the time panel says so (a log axis of nothing was an error)
+    untimed = [{**r, "query_ms": None, "methods": {m: {**v, "query_ms": None} for m, v in r["methods"].items()}}
+               for r in rows]
+    assert plot_catalog(untimed, tmp_path / "untimed.png", "title").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.mark.slow
