@@ -220,6 +220,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             of its visible textured pixels where that verifies better (:mod:`matl.inference.flow_pose`);
             ``unverified`` (answers that do not verify); ``none``; or a :class:`~matl.inference.flow_pose.FlowPose`
             with its own settings.
+        lookalike_ratio: a verified answer whose nearest other product is within this factor of its feature
+            distance is compared with that product's best verified candidate by one ZNCC over the whole plane, the
+            closer kept (look-alikes: the same layout in another flavour or colour); None: never.
         pose_judge: how the flow pose is judged against the answer's pose: ``both`` (default: the sum of the two
             distances below), ``explained`` (how badly the anchor, warped into the query by each pose, explains the
             query's visible foreground, over the same pixels for both poses:
@@ -263,6 +266,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.keypoint_pose: KeypointPose = settings.keypoint_pose
         self.flow_pose: FlowPose = settings.flow_pose
         self.pose_judge = settings.pose_judge
+        self.lookalike_ratio = settings.lookalike_ratio
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -478,6 +482,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
                 "keypoint_pose": self.keypoint_pose.options(),
                 "flow_pose": self.flow_pose.options(), "pose_judge": self.pose_judge,
+                "lookalike_ratio": self.lookalike_ratio,
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,
@@ -545,6 +550,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
+        if verification is not None and pred.query_H_anchor is not None:  # a near twin compared over the whole plane
+            pred, verification = self._lookalikes(queries, pred, verification, visibility, _upscale(query_H_file))
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)

@@ -96,6 +96,7 @@ class RecognizerOptions:
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
     pose_judge: str = "both"
+    lookalike_ratio: float | None = 1.1
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -139,6 +140,11 @@ class RecognizerOptions:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
         self.keypoint_pose = _stage(self.keypoint_pose, KeypointPose, "keypoint_pose")
         self.flow_pose = _stage(self.flow_pose, FlowPose, "flow_pose")
+        if self.lookalike_ratio is not None:
+            if not is_number(self.lookalike_ratio) or self.lookalike_ratio < 1.0:
+                raise MatlError(f"lookalike_ratio={self.lookalike_ratio!r} is invalid: use a factor >= 1 (e.g. 1.1) or "
+                                "None (no look-alike comparison)")
+            self.lookalike_ratio = float(self.lookalike_ratio)
         if self.pose_judge not in POSE_JUDGES:
             raise MatlError(f"pose_judge={self.pose_judge!r} is invalid: use {' or '.join(POSE_JUDGES)}")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)

@@ -115,6 +115,48 @@ class Verifying:
 
         return pose
 
+    def _lookalikes(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
+                    visibility: torch.Tensor | None, upscale: torch.Tensor | None) -> tuple[Prediction, Verification]:
+        """``lookalike_ratio``: each verified answer whose nearest other product is within ``lookalike_ratio`` times
+        its own feature distance (a look-alike: the same layout, another flavour, colour band or size) meets that
+        product's best candidate that verifies (:meth:`_verify` without the answered product); the two are compared
+        by one ZNCC over the whole plane (``statistic=global``: the flavour text or the colour band counts as much as
+        the shared layout, where the verification's patches keep the best half) and the lower distance is the
+        answer, still verified. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and
+        ``upscale`` ``(B,)`` (or None) as verification saw them."""
+        ratio = self.lookalike_ratio
+        if ratio is None or pred.features is None or len(self.objects) < 2:
+            return pred, verification
+        verified = [i for i in range(len(queries)) if bool(verification.verified[i])]
+        if not verified:
+            return pred, verification
+        by_object = self._object_distances(pred.features[verified])[0]
+        own = pred.object_index[verified].cpu()
+        mine = by_object.gather(1, own[:, None])[:, 0]
+        others = by_object.scatter(1, own[:, None], float("inf")).amin(1)
+        tied = [i for j, i in enumerate(verified) if float(others[j]) <= ratio * float(mine[j])]
+        if not tied:
+            return pred, verification
+        seen = None if visibility is None else visibility[tied]
+        rival = self._verify(queries[tied], exclude_object=pred.object_index[tied].cpu(), visibility=seen,
+                             upscale=None if upscale is None else torch.as_tensor(upscale)[tied])
+        images = self._build()[1].images
+        both = torch.cat([pred.gallery_index[tied].cpu(), rival.gallery_index.cpu()])
+        whole = verification_distance(queries[tied].repeat(2, 1, 1, 1), torch.cat(
+            [pred.query_H_anchor[tied].double().cpu(), rival.query_H_anchor.double().cpu()]), images[both.to(
+                images.device)], self.verify_blur, skip_empty=True, statistic="global")
+        n = len(tied)
+        better = [j for j in range(n) if bool(rival.verified[j]) and float(whole[n + j]) < float(whole[j])]
+        if not better:
+            return pred, verification
+        take = [tied[j] for j in better]
+        pred = self._answered(pred, take, rival.gallery_index[better], rival.query_H_anchor[better],
+                              rival.feature_distance[better].to(pred.distance))
+        source = list(range(len(take)))
+        return pred, dataclasses.replace(verification, **{
+            name: _with_rows(getattr(verification, name), take, getattr(rival, name)[better], source)
+            for name in ("gallery_index", "query_H_anchor", "feature_distance", "distance", "verified")})
+
     def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
         """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""
         changed = (verification.gallery_index.to(pred.gallery_index.device) != pred.gallery_index)

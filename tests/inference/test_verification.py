@@ -68,3 +68,32 @@ def test_an_occluded_query_verifies_on_what_it_shows(tmp_path: Path) -> None:
     for bad in ({"verify_statistic": "median"}, {"verify_min_visible": 1.5}, {"verify_min_visible": True}):
         with pytest.raises(MatlError, match=next(iter(bad))):
             stub_recognizer(**bad)
+
+
+def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None:
+    """A twin with the same colours (c() is the mean colour: the embedding cannot tell them apart) and a band of its
+    print mirrored (another flavour's text): the patches' verification passes both; the whole plane's ZNCC does
+    not, and with ``lookalike_ratio`` it decides."""
+    import cv2
+
+    gallery, queries, pose = easy_files(tmp_path)
+    art = cv2.imread(str(gallery / "red_box" / "front.png"))
+    h = art.shape[0]
+    twin = art.copy()
+    twin[h // 3:h // 2] = twin[h // 3:h // 2, ::-1]
+    (gallery / "red_a_box").mkdir()  # sorted before red_box: the nearest of a tie
+    cv2.imwrite(str(gallery / "red_a_box" / "front.png"), twin)
+    query = read_rgb(queries / "red_box.png")
+
+    def answer(ratio: float | None):
+        rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, foreground="none",
+                         lookalike_ratio=ratio)
+        return rec.enrol(gallery, cache=False).predict(query)
+
+    fooled, told = answer(None), answer(1.1)
+    assert fooled.object == "red_a_box" and fooled.verification <= 0.1  # the twin verifies by its patches
+    assert told.object == "red_box" and told.known and told.verification < fooled.verification
+    assert stub_recognizer().options()["lookalike_ratio"] == 1.1  # the default
+    for bad in (0.9, "near", float("nan")):
+        with pytest.raises(MatlError, match=r"lookalike_ratio=.* is invalid: use a factor >= 1"):
+            stub_recognizer(lookalike_ratio=bad)
