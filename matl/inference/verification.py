@@ -18,6 +18,7 @@ from matl.inference.images import _with_rows
 from matl.inference.verify import (
     CandidatePose,
     Verification,
+    candidate_distances,
     explained_distance,
     verification_distance,
     verify_candidates,
@@ -138,8 +139,16 @@ class Verifying:
         if not tied:
             return pred, verification
         seen = None if visibility is None else visibility[tied]
-        rival = self._verify(queries[tied], exclude_object=pred.object_index[tied].cpu(), visibility=seen,
-                             upscale=None if upscale is None else torch.as_tensor(upscale)[tied])
+        factor = None if upscale is None else torch.as_tensor(upscale)[tied]
+        exclude = pred.object_index[tied].cpu()
+        # the other products' nearest anchor, posed as the answers' further candidates are (not by the alignment
+        # stage, which a refined recognizer skips), then verification's candidates without the answered product
+        _, stn_H, warped, d = candidate_distances(self._gallery_recognizer(), queries[tied], exclude)
+        nearest_d, nearest = d.min(1)
+        pose = self._candidate_pose() if self.verify_refine else None
+        posed = stn_H if pose is None else pose(queries[tied], nearest, stn_H, warped, seen, factor)[0]
+        rival = self._verify(queries[tied], first=(nearest, posed, nearest_d), exclude_object=exclude, visibility=seen,
+                             upscale=factor)
         images = self._build()[1].images
         both = torch.cat([pred.gallery_index[tied].cpu(), rival.gallery_index.cpu()])
         whole = verification_distance(queries[tied].repeat(2, 1, 1, 1), torch.cat(

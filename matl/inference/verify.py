@@ -45,8 +45,8 @@ from numba import njit
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
-           "explained_distance", "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc",
-           "zncc"]
+           "candidate_distances", "explained_distance", "patch_distances", "verification_distance", "verify_candidates",
+           "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -480,7 +480,7 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     n = len(queries)
     embedded = None
     if first is None:  # the nearest (allowed) anchor, posed as the recognizer poses it
-        embedded = _candidate_distances(recognizer, queries, exclude_object)
+        embedded = candidate_distances(recognizer, queries, exclude_object)
         _, stn_H, warped, d = embedded
         nearest_d, nearest = d.min(1)
         H = stn_H
@@ -501,7 +501,7 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     seen = None if visibility is None else visibility[todo.to(visibility.device)]
     factor = None if upscale is None else torch.as_tensor(upscale)[todo]
     if embedded is None:
-        _, stn_H, warped, d = _candidate_distances(recognizer, x, None if exclude_object is None else
+        _, stn_H, warped, d = candidate_distances(recognizer, x, None if exclude_object is None else
                                                    exclude_object[todo])
     else:
         stn_H, warped, d = stn_H[todo], warped[todo], d[todo]
@@ -536,7 +536,7 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
 
 
-def _candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None
+def candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(features, STN query_H_anchor, s(queries), distances (Q, G) to every anchor)``; anchors of
     ``exclude_object`` at infinity."""
