@@ -27,7 +27,7 @@ from matl.inference.gallery import report_skipped
 from matl.inference.quantize import quantize_option
 from matl.inference.runtime import runtime_option
 from matl.models.prediction import Prediction
-from matl.utils.config import validate_config
+from matl.utils.config import is_int, validate_config
 from matl.utils.errors import MatlError
 from matl.utils.instantiate import instantiate_node
 from matl.utils.io import write_json
@@ -239,9 +239,9 @@ def _resolve_model(cfg: DictConfig) -> None:
 def _shard_option(cfg: DictConfig, whole: str) -> tuple[int | None, int]:
     """``(shard or None, shards)`` of a config, checked (``whole``: what a run without ``shard`` takes)."""
     shard, shards = cfg.get("shard"), cfg.get("shards", 1)
-    if not isinstance(shards, int) or isinstance(shards, bool) or shards < 1:
+    if not is_int(shards) or shards < 1:
         raise MatlError(f"shards={shards} is invalid: use an integer >= 1 (the number of shards)")
-    if shard is not None and (not isinstance(shard, int) or isinstance(shard, bool) or not 0 <= shard < shards):
+    if shard is not None and (not is_int(shard) or not 0 <= shard < shards):
         raise MatlError(f"shard={shard} is invalid: use an integer in [0, shards={shards}) or null (the whole "
                         f"{whole})")
     return shard, shards
