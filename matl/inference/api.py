@@ -406,6 +406,16 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         d = self._gallery_recognizer().gallery_distances(features).cpu()  # (Q, G), anchors plane-major
         return d.view(len(features), len(self._planes), -1).min(2).values
 
+    def _answered_and_other(self, by_object: torch.Tensor, plane_index: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Of :meth:`_object_distances`' ``(Q, O)`` and the answered planes ``plane_index`` ``(Q,)``: each query's
+        answered product (its position in :attr:`objects`), its distance to it and to the nearest other product,
+        each ``(Q,)``."""
+        position = self._plane_objects()
+        own = torch.tensor([position[int(p)] for p in plane_index], dtype=torch.long)
+        return (own, by_object.gather(1, own[:, None])[:, 0],
+                by_object.scatter(1, own[:, None], float("inf")).amin(1))
+
     def _object_distances(self, features: torch.Tensor) -> tuple[torch.Tensor, list[str]]:
         """``(Q, O)`` distance of each feature to the nearest anchor of every product, and the products."""
         objects = self.objects
@@ -550,8 +560,12 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
-        if verification is not None and pred.query_H_anchor is not None:  # a near twin compared over the whole plane
-            pred, verification = self._lookalikes(queries, pred, verification, visibility, _upscale(query_H_file))
+        taken = None  # (the features, their per-product distances): kept for the open-set answer while they hold
+        if (verification is not None and pred.query_H_anchor is not None and pred.features is not None
+                and self.lookalike_ratio is not None):  # a near twin compared over the whole plane
+            taken = (pred.features, self._object_distances(pred.features))
+            pred, verification = self._lookalikes(queries, pred, verification, visibility, _upscale(query_H_file),
+                                                  taken[1][0])
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
@@ -571,11 +585,10 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         features = pred.features  # c(s(query)), as the search used it: per-product distances
         if features is None:
             features = embed(self.model.feature_net, pred.warped)
-        by_object, objects = self._object_distances(features)
-        position = self._plane_objects()
-        own = torch.tensor([position[int(p)] for p in plane], dtype=torch.long)
-        nearest = by_object.gather(1, own[:, None])[:, 0]
-        second = by_object.scatter(1, own[:, None], float("inf")).min(1).values
+        # the look-alike step's distances unless a foreground retry answered a query anew (new features)
+        held = taken is not None and taken[0] is features
+        by_object, objects = taken[1] if held else self._object_distances(features)
+        own, nearest, second = self._answered_and_other(by_object, plane)
         statistic = self._statistic(nearest, second if len(objects) > 1 else nearest,
                                     None if verification is None else verification.verified)
         alternatives = self._alternatives(features, own, top_k)

@@ -117,25 +117,22 @@ class Verifying:
         return pose
 
     def _lookalikes(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
-                    visibility: torch.Tensor | None, upscale: torch.Tensor | None) -> tuple[Prediction, Verification]:
+                    visibility: torch.Tensor | None, upscale: torch.Tensor | None, by_object: torch.Tensor
+                    ) -> tuple[Prediction, Verification]:
         """``lookalike_ratio``: each verified answer whose nearest other product is within ``lookalike_ratio`` times
         its own feature distance (a look-alike: the same layout, another flavour, colour band or size) meets that
         product's best candidate that verifies (:meth:`_verify` without the answered product); the two are compared
         by one ZNCC over the whole plane (``statistic=global``: the flavour text or the colour band counts as much as
         the shared layout, where the verification's patches keep the best half) and the lower distance is the
         answer, still verified. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and
-        ``upscale`` ``(B,)`` (or None) as verification saw them."""
+        ``upscale`` ``(B,)`` (or None) as verification saw them; ``by_object`` ``(B, O)`` the queries'
+        :meth:`_object_distances`."""
         ratio = self.lookalike_ratio
-        if ratio is None or pred.features is None or len(self.objects) < 2:
+        if ratio is None or len(self.objects) < 2:
             return pred, verification
-        verified = [i for i in range(len(queries)) if bool(verification.verified[i])]
-        if not verified:
-            return pred, verification
-        by_object = self._object_distances(pred.features[verified])[0]
-        own = pred.object_index[verified].cpu()
-        mine = by_object.gather(1, own[:, None])[:, 0]
-        others = by_object.scatter(1, own[:, None], float("inf")).amin(1)
-        tied = [i for j, i in enumerate(verified) if float(others[j]) <= ratio * float(mine[j])]
+        _, mine, others = self._answered_and_other(by_object, pred.plane_index.cpu())
+        tied = [i for i in range(len(queries)) if bool(verification.verified[i])
+                and float(others[i]) <= ratio * float(mine[i])]
         if not tied:
             return pred, verification
         seen = None if visibility is None else visibility[tied]
