@@ -245,16 +245,19 @@ def _cell_sums(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, cells: in
     if not torch_only and a.device.type == "cpu" and not (a.requires_grad or b.requires_grad or weight.requires_grad):
         count, sums = _cell_sums_kernel(_numpy(a), _numpy(b), _numpy(weight), cells, side)
         return torch.from_numpy(count), torch.from_numpy(sums), area
-    pad = (0, cells * side - W, 0, cells * side - H)
-    m = F.pad(weight.double(), pad)
-    a, b = F.pad(a.double(), pad), F.pad(b.double(), pad)
-
-    def total(x: torch.Tensor) -> torch.Tensor:
-        return F.avg_pool2d(x, side) * area                      # (B, C', cells, cells) sums per cell
-
-    count = total(m)[:, 0]                                        # (B, cells, cells)
-    sums = total(torch.cat([m * a, m * b, m * a * a, m * b * b, m * a * b], 1)).view(B, 5, C, cells, cells)
+    m, a, b = weight.double(), a.double(), b.double()
+    count = _cell_totals(m, cells)[:, 0]                          # (B, cells, cells)
+    products = torch.cat([m * a, m * b, m * a * a, m * b * b, m * a * b], 1)
+    sums = _cell_totals(products, cells).view(B, 5, C, cells, cells)
     return count, sums, area
+
+
+def _cell_totals(x: torch.Tensor, cells: int) -> torch.Tensor:
+    """``(B, C, cells, cells)``: the sums of ``(B, C, H, W)`` over each cell of a ``cells`` x ``cells`` grid (cells of
+    :func:`_cell_sums`' side, the frame zero-padded to whole cells)."""
+    H, W = x.shape[-2:]
+    side = -(-max(H, W) // cells)
+    return F.avg_pool2d(F.pad(x, (0, cells * side - W, 0, cells * side - H)), side) * float(side * side)
 
 
 def _correlations(count: torch.Tensor, sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -405,8 +408,7 @@ def explained_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anch
     count, sums, area = _cell_sums(queries.contiguous(), warped[:, :3].contiguous(),
                                    covered.to(queries.dtype).contiguous(), cells)
     _, _, corr = _correlations(count, sums)
-    side = -(-S // cells)
-    shown = F.avg_pool2d(F.pad(seen.double(), (0, cells * side - S, 0, cells * side - S)), side)[:, 0] * area
+    shown = _cell_totals(seen.double(), cells)[:, 0]
     cost = torch.where(count >= cover * shown, 1.0 - corr, torch.ones_like(corr))
     weight = torch.where(shown >= fill * area, shown, torch.zeros_like(shown)).flatten(1)
     total = weight.sum(1)
