@@ -29,7 +29,7 @@ MATL_METHODS = ("matl", "matl_refine")  # the checkpoint's model; the others are
 # the same keys in conf/unseen.yaml (values: their defaults)
 OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
                  "verify_refine": True, "verify_statistic": "patches", "verify_min_visible": 0.3,
-                 "verify_occluded_copies": 0.0, "refine_check": "none", "keypoint_pose": "unverified",
+                 "verify_occluded_copies": 0.0, "refine_check": "judge", "keypoint_pose": "unverified",
                  "flow_pose": "always", "pose_judge": "both", "lookalike_ratio": 1.1}
 
 

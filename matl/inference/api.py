@@ -228,9 +228,12 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             query's visible foreground, over the same pixels for both poses:
             :func:`~matl.inference.verify.explained_distance`) or ``verification`` (the verification distance, in
             the anchor's frame, over the part of the plane each pose puts under the query's mask).
-        refine_check: a second judge of a refined pose beside the refiner's own loss: ``verify`` keeps the
-            unrefined pose where its verification distance (``verify_blur``, ``verify_statistic``, over the
-            query's visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
+        refine_check: a second judge of a refined pose beside the refiner's own loss: ``judge`` (default): a refined
+            answer that does not verify, or verifies above 0.03, meets the pose the recognizer gives without
+            refinement (``s()`` and the model's alignment stage) and ``pose_judge`` keeps the better, before the flow
+            pose (:meth:`~matl.inference.verification.Verifying._unrefined_poses`); ``verify`` keeps the refiner's
+            start where its verification distance (``verify_blur``, ``verify_statistic``, over the query's
+            visibility) is lower than the refined pose's; ``none``: the refiner's loss alone.
         gallery_fill, query_fill: the fraction of the model frame an image's longer side takes
             (:func:`matl.data.image_files.fit_geometry`).
         batch_size: query images per forward pass.
@@ -573,6 +576,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification, visibility = self._foreground_retries(
                     recognizer, prepared, pred, queries, verification, visibility)
+        if verification is not None and self.refine_check == "judge" and pred.query_H_anchor is not None:
+            # a doubtful refined answer meets its unrefined pose; the flow starts from the one judged better
+            pred, verification = self._unrefined_poses(queries, pred, verification, visibility)
         if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
             pred, verification = self._flow_poses(queries, pred, verification, visibility, _upscale(query_H_file))

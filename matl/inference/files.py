@@ -205,7 +205,7 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
         verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
         verify_refine=cfg.get("verify_refine", True), verify_statistic=cfg.get("verify_statistic", "patches"),
         verify_min_visible=cfg.get("verify_min_visible", 0.3),
-        verify_occluded_copies=cfg.get("verify_occluded_copies", 0.0), refine_check=cfg.get("refine_check", "none"),
+        verify_occluded_copies=cfg.get("verify_occluded_copies", 0.0), refine_check=cfg.get("refine_check", "judge"),
         keypoint_pose=str(cfg.get("keypoint_pose", "unverified")),
         flow_pose=str(cfg.get("flow_pose", "always")), pose_judge=str(cfg.get("pose_judge", "both")),
         lookalike_ratio=cfg.get("lookalike_ratio", 1.1),

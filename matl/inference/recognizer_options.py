@@ -31,7 +31,7 @@ __all__ = ["OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOpt
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
 #: second judges of a refined pose (Recognizer's ``refine_check``)
-REFINE_CHECKS = ("none", "verify")
+REFINE_CHECKS = ("none", "verify", "judge")
 #: how the flow pose is judged against the answer's pose (Recognizer's ``pose_judge``)
 POSE_JUDGES = ("both", "explained", "verification")
 
@@ -92,7 +92,7 @@ class RecognizerOptions:
     verify_statistic: str = "patches"
     verify_min_visible: float = 0.3
     verify_occluded_copies: float = 0.0
-    refine_check: str = "none"
+    refine_check: str = "judge"
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
     pose_judge: str = "both"

@@ -24,8 +24,12 @@ from matl.inference.verify import (
     verify_candidates,
 )
 from matl.models.prediction import Prediction
+from matl.utils.timing import stage
 
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
+#: ``refine_check=judge``: a refined answer whose verification distance is above this (or that does not verify) meets
+#: its unrefined pose (the flow pose's ``above``: a pose verifying that closely is left as it is)
+DOUBTFUL = 0.03
 
 
 class Verifying:
@@ -67,6 +71,44 @@ class Verifying:
         return verification_distance(queries, query_H_anchor, gallery.images[gallery_index.to(gallery.images.device)],
                                      self.verify_blur, skip_empty=True, visibility=visibility,
                                      statistic=self.verify_statistic, min_visible=self.verify_min_visible)
+
+    def _unrefined_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
+                         visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:
+        """``refine_check=judge``: each refined answer that does not verify, or whose verification distance is above
+        :data:`DOUBTFUL`, meets the pose the recognizer gives without refinement (``s()``'s, then the model's
+        alignment stage, which the refinement skips) against the same anchor; ``pose_judge`` (:meth:`_judged`) keeps
+        the lower, and the flow stage starts from it. Such a pose that verifies within ``verify_max`` counts as
+        verified, as it does for the unrefined recognizer. ``queries`` ``(B, 3, S, S)`` and ``visibility``
+        ``(B, 1, S, S)`` (or None) as verification saw them."""
+        rows = [i for i in range(len(queries)) if not bool(verification.verified[i])
+                or float(verification.distance[i]) > DOUBTFUL]
+        if not rows or self.refiner is None:
+            return pred, verification
+        with stage(self.stage_timer, "alignment"):
+            inner, images = self._gallery_recognizer(), self._build()[1].images
+            index = pred.gallery_index[rows].cpu()
+            shown = queries[rows]
+            _, poses, _, warped = inner.embed_queries(shown)
+            align = getattr(inner, "align", None)
+            if align is not None:
+                poses = align.infer(shown, images[index.to(images.device)], poses, warped).query_H_anchor
+            poses = poses.double().cpu()
+            seen = None if visibility is None else visibility[rows]
+            distance = self._pose_check(shown, poses, index, seen)
+            unrefined = self._judged(shown, poses, index, seen, distance)
+            refined = self._judged(shown, pred.query_H_anchor[rows].double().cpu(), index, seen,
+                                   verification.distance[rows])
+        better = [j for j in range(len(rows)) if float(unrefined[j]) < float(refined[j])]
+        if not better:
+            return pred, verification
+        take = [rows[j] for j in better]
+        pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
+        kept = distance[better].to(verification.distance)
+        answer = {"query_H_anchor": poses[better], "distance": kept,
+                  "verified": verification.verified[take] | (kept <= self.verify_max).to(verification.verified)}
+        source = list(range(len(take)))
+        return pred, dataclasses.replace(verification, **{
+            name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})
 
     def _judged(self, queries: torch.Tensor, query_H_anchor: torch.Tensor, gallery_index: torch.Tensor,
                 visibility: torch.Tensor | None, distance: torch.Tensor) -> torch.Tensor:

@@ -3,6 +3,7 @@ over the visible print, an occluder left out, and kept only where it verifies be
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 from pathlib import Path
 
@@ -14,7 +15,9 @@ import torch
 from matl import Match, Recognizer
 from matl.data.image_files import fit_geometry
 from matl.geometry import corner_error_px
+from matl.inference.fast_refine import FastRefiner
 from matl.inference.flow_pose import FlowPose
+from matl.inference.refine import RefineResult
 from matl.utils.errors import MatlError
 from tests.inference.test_api import StubModel
 from tests.inference.test_keypoint_pose import GALLERY_HW, QUERY_H_GALLERY, QUERY_HW, error_px, hidden_query, print_like
@@ -177,3 +180,28 @@ def test_a_bad_pose_judge_is_a_one_line_error() -> None:
     with pytest.raises(MatlError, match="pose_judge='median' is invalid: use both or explained or verification"):
         off_pose_recognizer(0.0, pose_judge="median")
     assert off_pose_recognizer(0.0).options()["pose_judge"] == "both"  # the default
+
+
+class Astray(FastRefiner):
+    """The fast refinement, its poses then moved 6 px off (a refinement led away by an occluder)."""
+
+    def __call__(self, queries: torch.Tensor, index: torch.Tensor, query_H_anchor: torch.Tensor, templates: object,
+                 **options: object) -> RefineResult:
+        result = super().__call__(queries, index, query_H_anchor, templates, **options)
+        shift = torch.tensor([[1.0, 0.0, 6.0], [0.0, 1.0, -6.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        return dataclasses.replace(result, query_H_anchor=result.query_H_anchor @ shift)
+
+
+def test_a_doubtful_refined_answer_meets_its_unrefined_pose(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+
+    def answer(check: str, shift: float = 0.0) -> Match:
+        return off_pose_recognizer(shift, refine=Astray(), refine_check=check, flow_pose="none").enrol(
+            gallery, cache=False).predict(query)
+
+    # s() gives the truth: refine_check=judge takes it over the refinement's pose 6 px off, which verifies worse
+    astray, judged = answer("none"), answer("judge")
+    assert error_px(astray.H) > 5.0 and error_px(judged.H) < 1.0 and judged.verification < astray.verification
+    # s() 8 px off: the refined pose (6 px off the truth) is judged the better and stays
+    np.testing.assert_array_equal(answer("judge", 8.0).H, answer("none", 8.0).H)
+    assert off_pose_recognizer(0.0).options()["refine_check"] == "judge"  # the default
