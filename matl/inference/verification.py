@@ -30,6 +30,9 @@ VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k can
 #: ``refine_check=judge``: a refined answer whose verification distance is above this (or that does not verify) meets
 #: its unrefined pose (the flow pose's ``above``: a pose verifying that closely is left as it is)
 DOUBTFUL = 0.03
+#: ``lookalike_ratio``: most other products within the ratio a verified answer meets, nearest first (a look-alike
+#: family of up to 4)
+LOOKALIKE_RIVALS = 3
 
 
 class Verifying:
@@ -161,49 +164,64 @@ class Verifying:
     def _lookalikes(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
                     visibility: torch.Tensor | None, upscale: torch.Tensor | None, by_object: torch.Tensor
                     ) -> tuple[Prediction, Verification]:
-        """``lookalike_ratio``: each verified answer whose nearest other product is within ``lookalike_ratio`` times
-        its own feature distance (a look-alike: the same layout, another flavour, colour band or size) meets that
-        product's best candidate that verifies (:meth:`_verify` without the answered product); the two are compared
-        by one ZNCC over the whole plane (``statistic=global``: the flavour text or the colour band counts as much as
-        the shared layout, where the verification's patches keep the best half) and the lower distance is the
-        answer, still verified. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and
-        ``upscale`` ``(B,)`` (or None) as verification saw them; ``by_object`` ``(B, O)`` the queries'
-        :meth:`_object_distances`."""
+        """``lookalike_ratio``: each verified answer meets the other products within ``lookalike_ratio`` times its own
+        feature distance (look-alikes: the same layout in another flavour, colour band, size or badge), nearest
+        first, at most :data:`LOOKALIKE_RIVALS` of them: each one's best candidate that verifies (:meth:`_verify` from
+        that product's nearest anchor, without the current answer's product) is compared with the current answer by
+        one ZNCC over the whole plane (``statistic=global``: the flavour text or the colour band counts as much as the
+        shared layout, where the verification's patches keep the best half), and the closer one is the answer, still
+        verified. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)``
+        (or None) as verification saw them; ``by_object`` ``(B, O)`` the queries' :meth:`_object_distances`."""
         ratio = self.lookalike_ratio
         if ratio is None or len(self.objects) < 2:
             return pred, verification
-        _, mine, others = self._answered_and_other(by_object, pred.plane_index.cpu())
-        tied = [i for i in range(len(queries)) if bool(verification.verified[i])
-                and float(others[i]) <= ratio * float(mine[i])]
-        if not tied:
+        own, mine, _ = self._answered_and_other(by_object, pred.plane_index.cpu())
+        rivals: dict[int, list[int]] = {}  # query -> the other products within the ratio, nearest first
+        for i in range(len(queries)):
+            if bool(verification.verified[i]):
+                close = [int(o) for o in torch.argsort(by_object[i], stable=True).tolist()
+                         if int(o) != int(own[i]) and float(by_object[i, o]) <= ratio * float(mine[i])]
+                if close:
+                    rivals[i] = close[:LOOKALIKE_RIVALS]
+        if not rivals:
             return pred, verification
-        seen = None if visibility is None else visibility[tied]
-        factor = None if upscale is None else torch.as_tensor(upscale)[tied]
-        exclude = pred.object_index[tied].cpu()
-        # the other products' nearest anchor, posed as the answers' further candidates are (not by the alignment
-        # stage, which a refined recognizer skips), then verification's candidates without the answered product
-        _, stn_H, warped, d = candidate_distances(self._gallery_recognizer(), queries[tied], exclude)
-        nearest_d, nearest = d.min(1)
+        tied = list(rivals)
+        inner, images = self._gallery_recognizer(), self._build()[1].images
+        _, stn_H, warped, d = candidate_distances(inner, queries[tied], None)
+        objects = inner.gallery.object_index.to(d.device)
         pose = self._candidate_pose() if self.verify_refine else None
-        posed = stn_H if pose is None else pose(queries[tied], nearest, stn_H, warped, seen, factor)[0]
-        rival = self._verify(queries[tied], first=(nearest, posed, nearest_d), exclude_object=exclude, visibility=seen,
-                             upscale=factor)
-        images = self._build()[1].images
-        both = torch.cat([pred.gallery_index[tied].cpu(), rival.gallery_index.cpu()])
-        whole = verification_distance(queries[tied].repeat(2, 1, 1, 1), torch.cat(
-            [pred.query_H_anchor[tied].double().cpu(), rival.query_H_anchor.double().cpu()]), images[both.to(
-                images.device)], self.verify_blur, skip_empty=True, statistic="global")
-        n = len(tied)
-        better = [j for j in range(n) if bool(rival.verified[j]) and float(whole[n + j]) < float(whole[j])]
-        if not better:
-            return pred, verification
-        take = [tied[j] for j in better]
-        pred = self._answered(pred, take, rival.gallery_index[better], rival.query_H_anchor[better],
-                              rival.feature_distance[better].to(pred.distance))
-        source = list(range(len(take)))
-        return pred, dataclasses.replace(verification, **{
-            name: _with_rows(getattr(verification, name), take, getattr(rival, name)[better], source)
-            for name in ("gallery_index", "query_H_anchor", "feature_distance", "distance", "verified")})
+        for rank in range(LOOKALIKE_RIVALS):
+            at = [j for j, i in enumerate(tied) if rank < len(rivals[i])]
+            if not at:
+                break
+            rows = [tied[j] for j in at]
+            target = torch.tensor([rivals[i][rank] for i in rows], device=d.device)
+            nearest_d, nearest = d[at].masked_fill(objects[None, :] != target[:, None], float("inf")).min(1)
+            seen = None if visibility is None else visibility[rows]
+            factor = None if upscale is None else torch.as_tensor(upscale)[rows]
+            # posed as the answers' further candidates are (not by the alignment stage, which a refined recognizer
+            # skips), then verification's candidates without the current answer's product
+            posed = stn_H[at] if pose is None else pose(queries[rows], nearest, stn_H[at], warped[at], seen,
+                                                         factor)[0]
+            rival = self._verify(queries[rows], first=(nearest, posed, nearest_d),
+                                 exclude_object=pred.object_index[rows].cpu(), visibility=seen, upscale=factor)
+            answer_H, rival_H = pred.query_H_anchor[rows].double().cpu(), rival.query_H_anchor.double().cpu()
+            answer_g, rival_g = pred.gallery_index[rows].cpu(), rival.gallery_index.cpu()
+            whole = verification_distance(queries[rows].repeat(2, 1, 1, 1), torch.cat([answer_H, rival_H]),
+                                          images[torch.cat([answer_g, rival_g]).to(images.device)], self.verify_blur,
+                                          skip_empty=True, statistic="global")
+            n = len(rows)
+            better = [j for j in range(n) if bool(rival.verified[j]) and float(whole[n + j]) < float(whole[j])]
+            if not better:
+                continue
+            take = [rows[j] for j in better]
+            pred = self._answered(pred, take, rival.gallery_index[better], rival.query_H_anchor[better],
+                                  rival.feature_distance[better].to(pred.distance))
+            source = list(range(len(take)))
+            verification = dataclasses.replace(verification, **{
+                name: _with_rows(getattr(verification, name), take, getattr(rival, name)[better], source)
+                for name in ("gallery_index", "query_H_anchor", "feature_distance", "distance", "verified")})
+        return pred, verification
 
     def _reranked(self, pred: Prediction, verification: Verification) -> Prediction:
         """``pred`` with the verified answer where it differs from the nearest anchor (other rows unchanged)."""

@@ -97,3 +97,30 @@ def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None
     for bad in (0.9, "near", float("nan")):
         with pytest.raises(MatlError, match=r"lookalike_ratio=.* is invalid: use a factor >= 1"):
             stub_recognizer(lookalike_ratio=bad)
+
+
+def test_every_look_alike_of_a_family_is_met(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A family of three with the same colours (c() is the mean colour: one feature distance for all), each twin a
+    narrow band of the print mirrored (both verify by their patches): the right product is met only as the second
+    other product of a twin's answer; each other product within the ratio is met in turn, up to LOOKALIKE_RIVALS."""
+    import cv2
+
+    import matl.inference.verification as verification
+
+    gallery, queries, pose = easy_files(tmp_path)
+    art = cv2.imread(str(gallery / "red_box" / "front.png"))
+    h = art.shape[0]
+    for name, rows in (("red_a_box", slice(h // 3, h // 3 + h // 8)), ("red_b_box", slice(h // 2, h // 2 + h // 8))):
+        twin = art.copy()
+        twin[rows] = twin[rows, ::-1]  # sorted before red_box: nearer in a tie
+        (gallery / name).mkdir()
+        cv2.imwrite(str(gallery / name / "front.png"), twin)
+    query = read_rgb(queries / "red_box.png")
+
+    def answer() -> str | None:
+        rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, foreground="none")
+        return rec.enrol(gallery, cache=False).predict(query).object
+
+    assert verification.LOOKALIKE_RIVALS == 3 and answer() == "red_box"
+    monkeypatch.setattr(verification, "LOOKALIKE_RIVALS", 1)  # the nearest other product alone: a twin
+    assert answer() in ("red_a_box", "red_b_box")
