@@ -23,7 +23,6 @@ refinement moves the pose away more often than closer.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,7 +30,6 @@ import cv2
 import numpy as np
 import torch
 
-from matl.inference.images import _with_rows
 from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
@@ -231,24 +229,7 @@ class FlowPoses:
             if not found:
                 return pred, verification
             at = [i for i, _ in found]
-            index = pred.gallery_index[at].cpu()
-            poses = torch.stack([p for _, p in found])
-            seen = None if visibility is None else visibility[at]
-            distance = self._pose_check(queries[at], poses, index, seen)
-            flowed = self._judged(queries[at], poses, index, seen, distance)
-            answered = self._judged(queries[at], pred.query_H_anchor[at].double().cpu(), index, seen,
-                                    verification.distance[at])
-            better = [j for j in range(len(at)) if float(flowed[j]) < float(answered[j])]
-            if not better:
-                return pred, verification
-            take = [at[j] for j in better]
-            pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
-            kept = distance[better].to(verification.distance)
             # verified stays as it was unless the flow pose verifies within ``verifies``: an answer it alone makes
             # verify is judged known by the open-set statistic
-            answer = {"query_H_anchor": poses[better], "distance": kept}
-            if settings.verifies is not None:
-                answer["verified"] = verification.verified[take] | (kept <= settings.verifies)
-            source = list(range(len(take)))
-            return pred, dataclasses.replace(verification, **{
-                name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})
+            return self._take_judged_better(queries, pred, verification, at, torch.stack([p for _, p in found]),
+                                            visibility, settings.verifies)

@@ -95,20 +95,31 @@ class Verifying:
             align = getattr(inner, "align", None)
             if align is not None:
                 poses = align.infer(shown, images[index.to(images.device)], poses, warped).query_H_anchor
-            poses = poses.double().cpu()
-            seen = None if visibility is None else visibility[rows]
-            distance = self._pose_check(shown, poses, index, seen)
-            unrefined = self._judged(shown, poses, index, seen, distance)
-            refined = self._judged(shown, pred.query_H_anchor[rows].double().cpu(), index, seen,
-                                   verification.distance[rows])
-        better = [j for j in range(len(rows)) if float(unrefined[j]) < float(refined[j])]
+            return self._take_judged_better(queries, pred, verification, rows, poses.double().cpu(), visibility,
+                                            self.verify_max)
+
+    def _take_judged_better(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
+                            rows: list[int], poses: torch.Tensor, visibility: torch.Tensor | None,
+                            verifies: float | None) -> tuple[Prediction, Verification]:
+        """``pred`` and ``verification`` with rows ``rows`` posed by ``poses`` ``(R, 3, 3)`` (float64 pixel
+        ``query_H_anchor`` against each row's answered anchor) where ``pose_judge`` (:meth:`_judged`) rates that pose
+        better than the row's own; its verification distance goes with it, and an answer it brings within
+        ``verifies`` counts as verified (None: ``verified`` stays as it was). ``queries`` ``(B, 3, S, S)`` and
+        ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them."""
+        index = pred.gallery_index[rows].cpu()
+        shown, seen = queries[rows], None if visibility is None else visibility[rows]
+        distance = self._pose_check(shown, poses, index, seen)
+        offered = self._judged(shown, poses, index, seen, distance)
+        own = self._judged(shown, pred.query_H_anchor[rows].double().cpu(), index, seen, verification.distance[rows])
+        better = [j for j in range(len(rows)) if float(offered[j]) < float(own[j])]
         if not better:
             return pred, verification
         take = [rows[j] for j in better]
         pred = self._answered(pred, take, index[better], poses[better], pred.distance[take])
         kept = distance[better].to(verification.distance)
-        answer = {"query_H_anchor": poses[better], "distance": kept,
-                  "verified": verification.verified[take] | (kept <= self.verify_max).to(verification.verified)}
+        answer = {"query_H_anchor": poses[better], "distance": kept}
+        if verifies is not None:
+            answer["verified"] = verification.verified[take] | (kept <= verifies).to(verification.verified)
         source = list(range(len(take)))
         return pred, dataclasses.replace(verification, **{
             name: _with_rows(getattr(verification, name), take, value, source) for name, value in answer.items()})
