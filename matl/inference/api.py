@@ -220,9 +220,10 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             of its visible textured pixels where that verifies better (:mod:`matl.inference.flow_pose`);
             ``unverified`` (answers that do not verify); ``none``; or a :class:`~matl.inference.flow_pose.FlowPose`
             with its own settings.
-        lookalike_ratio: a verified answer whose nearest other product is within this factor of its feature
-            distance is compared with that product's best verified candidate by one ZNCC over the whole plane, the
-            closer kept (look-alikes: the same layout in another flavour or colour); None: never.
+        lookalike_ratio: a verified answer meets every other product within this factor of its feature distance,
+            nearest first and up to three (look-alikes: the same layout in another flavour or colour): each one's
+            best verified candidate is compared with the current answer by one ZNCC over the whole plane, the closer
+            kept (:meth:`~matl.inference.verification.Verifying._lookalikes`); None: never.
         pose_judge: how the flow pose is judged against the answer's pose: ``both`` (default: the sum of the two
             distances below), ``explained`` (how badly the anchor, warped into the query by each pose, explains the
             query's visible foreground, over the same pixels for both poses:

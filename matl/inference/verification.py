@@ -83,18 +83,20 @@ class Verifying:
         the lower, and the flow stage starts from it. Such a pose that verifies within ``verify_max`` counts as
         verified, as it does for the unrefined recognizer. ``queries`` ``(B, 3, S, S)`` and ``visibility``
         ``(B, 1, S, S)`` (or None) as verification saw them."""
+        if self.refiner is None:  # the answers' poses are the unrefined ones already
+            return pred, verification
         rows = [i for i in range(len(queries)) if not bool(verification.verified[i])
                 or float(verification.distance[i]) > DOUBTFUL]
-        if not rows or self.refiner is None:
+        if not rows:
             return pred, verification
         with stage(self.stage_timer, "alignment"):
             inner, images = self._gallery_recognizer(), self._build()[1].images
-            index = pred.gallery_index[rows].cpu()
             shown = queries[rows]
             _, poses, _, warped = inner.embed_queries(shown)
             align = getattr(inner, "align", None)
             if align is not None:
-                poses = align.infer(shown, images[index.to(images.device)], poses, warped).query_H_anchor
+                anchors = images[pred.gallery_index[rows].to(images.device)]
+                poses = align.infer(shown, anchors, poses, warped).query_H_anchor
             return self._take_judged_better(queries, pred, verification, rows, poses.double().cpu(), visibility,
                                             self.verify_max)
 
