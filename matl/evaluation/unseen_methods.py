@@ -25,12 +25,13 @@ from matl.utils.errors import CONF_DIR, MatlError
 
 METHODS = ("matl", "matl_refine", "sift", "sift_ecc", "lightglue", "xfeat", "xfeat_lighterglue")
 MATL_METHODS = ("matl", "matl_refine")  # the checkpoint's model; the others are keypoint baselines
-# predict's open-set, verification, refine_check, keypoint_pose, flow_pose, pose_judge and lookalike_ratio keys,
-# the same keys in conf/unseen.yaml (values: their defaults)
+# predict's open-set, verification, refine_check, keypoint_pose, flow_pose, pose_judge, lookalike_ratio and uncover
+# keys, the same keys in conf/unseen.yaml (values: their defaults)
 OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
                  "verify_refine": True, "verify_statistic": "patches", "verify_min_visible": 0.3,
                  "verify_occluded_copies": 0.0, "refine_check": "judge", "keypoint_pose": "unverified",
-                 "flow_pose": "always", "pose_judge": "both", "lookalike_ratio": 1.1}
+                 "flow_pose": "always", "pose_judge": "both", "lookalike_ratio": 1.1,
+                 "uncover": 0.7}
 
 
 # -------------------------------------------------------------------------------------- commands

@@ -224,6 +224,10 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             nearest first and up to three (look-alikes: the same layout in another flavour or colour): each one's
             best verified candidate is compared with the current answer by one ZNCC over the whole plane, the closer
             kept (:meth:`~matl.inference.verification.Verifying._lookalikes`); None: never.
+        uncover: an RGB crop's answer whose pose verifies but whose plane covers less than this share of what the
+            crop shows (another product lying across the one the crop was cut for) is erased from the crop's
+            foreground and the rest answered again; the rest's answer is taken where it is another product that
+            verifies, covers more of the crop and lies under the first (:mod:`matl.inference.uncover`); None: never.
         pose_judge: how the flow pose is judged against the answer's pose: ``both`` (default: the sum of the two
             distances below), ``explained`` (how badly the anchor, warped into the query by each pose, explains the
             query's visible foreground, over the same pixels for both poses:
@@ -271,6 +275,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.flow_pose: FlowPose = settings.flow_pose
         self.pose_judge = settings.pose_judge
         self.lookalike_ratio = settings.lookalike_ratio
+        self.uncover = settings.uncover
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
@@ -496,7 +501,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
                 "keypoint_pose": self.keypoint_pose.options(),
                 "flow_pose": self.flow_pose.options(), "pose_judge": self.pose_judge,
-                "lookalike_ratio": self.lookalike_ratio,
+                "lookalike_ratio": self.lookalike_ratio, "uncover": self.uncover,
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,
@@ -507,7 +512,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         """Fill ``timer`` (:class:`matl.utils.timing.StageTimer`) with the milliseconds of each stage of the calls
         that follow: ``foreground``, ``framing`` (to the model frame), ``networks``, ``search``, ``alignment``,
         ``refinement``, ``verification`` (the further candidates' networks and poses included),
-        ``keypoints`` (``keypoint_pose``), ``retries`` (``foreground.retry_insets``: everything a retried query runs
+        ``keypoints`` (``keypoint_pose``), ``uncover`` (``uncover``: everything a query answered again runs),
+        ``retries`` (``foreground.retry_insets``: everything a retried query runs
         again) and ``flow`` (``flow_pose``); None stops it and leaves no cost.
         Time the stages after enrolling: a gallery changed afterwards is answered untimed inside the networks."""
         with self._lock:
@@ -573,6 +579,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)
+        if verification is not None and self.uncover is not None and pred.query_H_canon is not None:
+            # a verified product lying across the one the crop was cut for is explained away
+            with stage(self.stage_timer, "uncover"):
+                pred, queries, verification, visibility = self._uncovered(
+                    recognizer, prepared, pred, queries, query_H_file, verification, visibility)
         if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification, visibility = self._foreground_retries(

@@ -208,7 +208,7 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
         verify_occluded_copies=cfg.get("verify_occluded_copies", 0.0), refine_check=cfg.get("refine_check", "judge"),
         keypoint_pose=str(cfg.get("keypoint_pose", "unverified")),
         flow_pose=str(cfg.get("flow_pose", "always")), pose_judge=str(cfg.get("pose_judge", "both")),
-        lookalike_ratio=cfg.get("lookalike_ratio", 1.1),
+        lookalike_ratio=cfg.get("lookalike_ratio", 1.1), uncover=cfg.get("uncover", 0.7),
         gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size),
         foreground=cfg.get("foreground"))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:

@@ -3,11 +3,13 @@
 A query prepared by :func:`~matl.inference.foreground.mask_query` is framed at model size, answered (its mask
 tightened by its answered plane's outline for ``foreground.passes``), verified and re-ranked
 (:meth:`QueryPasses._answer`); one whose answer does not verify is masked again and answered again
-(``foreground.retry_insets``, :meth:`QueryPasses._foreground_retries`).
+(``foreground.retry_insets``, :meth:`QueryPasses._foreground_retries`); an answer lying across the product the
+crop was cut for is explained away and the rest answered again (``uncover``, :meth:`QueryPasses._uncovered`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -15,9 +17,11 @@ import numpy as np
 import torch
 
 from matl.data.image_files import fit_to_model
+from matl.geometry import warp_image
 from matl.inference.foreground import pose_mask
 from matl.inference.images import _query_visibility, _upscale, _with_rows
 from matl.inference.refine import RefinedRecognizer
+from matl.inference.uncover import covered_share, erased_alpha, lies_on_top, plane_in_query, shown_pixels
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.timing import stage
@@ -87,6 +91,73 @@ class QueryPasses:
             visibility = _with_rows(visibility, rows, alt_visibility, source)
         return (_with_rows(pred, rows, alt_pred, source), _with_rows(queries, rows, alt_queries, source),
                 _with_rows(verification, rows, alt_verification, source), visibility)
+
+    def _uncovered(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                   pred: Prediction, queries: torch.Tensor, query_H_file: torch.Tensor, verification: Verification,
+                   visibility: torch.Tensor | None
+                   ) -> tuple[Prediction, torch.Tensor, Verification, torch.Tensor | None]:
+        """``uncover`` (:mod:`matl.inference.uncover`): each query with a found foreground (an RGB crop) whose answer's
+        pose verifies (distance within ``verify_max``, counted as verified or not) but whose plane covers less than
+        ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
+        networks, verification and, where on, the keypoint pose); the new answer is taken where it is another product,
+        its pose verifies over what is left, its plane covers more of the crop and the first answer lies on top of it
+        there (counted as verified). Returns the prediction, queries, verification and visibility with the taken
+        rows replaced (the file frame does not change)."""
+        S = self.image_size
+        rows = [i for i, (_, _, found) in enumerate(prepared)
+                if found is not None and float(verification.distance[i]) <= self.verify_max]
+        if not rows:
+            return pred, queries, verification, visibility
+        if int(self.foreground.passes) == 0:  # the queries as the foreground step masked them
+            framed = queries[rows]
+        else:  # the pose passes masked them by the answered plane too: the foreground step's mask alone
+            framed = torch.stack([fit_to_model(prepared[i][0], S, self.query_fill)[0] for i in rows])
+        shown = shown_pixels(framed, None if visibility is None else visibility[rows]).cpu()
+        plane = self._answered_planes(pred, rows)
+        share = covered_share(plane, shown)
+        small = [j for j in range(len(rows)) if float(share[j]) < self.uncover]
+        if not small:
+            return pred, queries, verification, visibility
+        again = []
+        for j in small:
+            i = rows[j]
+            _, rgb, found = prepared[i]
+            kept = erased_alpha(found, plane[j].cpu().numpy(), query_H_file[i].double().numpy())
+            again.append((np.ascontiguousarray(rgb * kept[..., None]), rgb, kept))
+        alt_pred, alt_queries, alt_H_file, alt_verification, alt_visibility = self._answer(recognizer, again)
+        if self.keypoint_pose.active and alt_pred.query_H_anchor is not None:
+            alt_pred, alt_verification = self._keypoint_poses(again, alt_pred, alt_H_file, alt_verification)
+        alt_plane = self._answered_planes(alt_pred, list(range(len(small))))
+        alt_share = covered_share(alt_plane, shown[small])
+        images = self._build()[1].images
+        take, source = [], []
+        for k, j in enumerate(small):
+            i = rows[j]
+            if (int(alt_pred.object_index[k]) == int(pred.object_index[i])
+                    or float(alt_verification.distance[k]) > self.verify_max or float(alt_share[k]) <= float(share[j])):
+                continue
+            anchors = images[torch.stack([pred.gallery_index[i], alt_pred.gallery_index[k]]).to(images.device)]
+            poses = torch.stack([pred.query_H_anchor[i].double(), alt_pred.query_H_anchor[k].double()])
+            top, under = warp_image(anchors, poses.to(anchors.device), (S, S))
+            raw = fit_to_model(prepared[i][1], S, self.query_fill)[0].to(top.device)
+            if lies_on_top(raw, top, under, (plane[j] & alt_plane[k] & shown[j]).to(top.device)) is not False:
+                take.append(i)
+                source.append(k)
+        if not take:
+            return pred, queries, verification, visibility
+        alt_verification = dataclasses.replace(alt_verification, verified=torch.ones_like(alt_verification.verified))
+        if visibility is not None:  # an RGB crop with a found foreground always has a visibility
+            visibility = _with_rows(visibility, take, alt_visibility, source)
+        return (_with_rows(pred, take, alt_pred, source), _with_rows(queries, take, alt_queries, source),
+                _with_rows(verification, take, alt_verification, source), visibility)
+
+    def _answered_planes(self, pred: Prediction, rows: list[int]) -> torch.Tensor:
+        """``(R, S, S)`` bool: the answered planes of rows ``rows`` warped into their queries' model frame by the
+        answers' poses."""
+        S = self.image_size
+        return torch.from_numpy(np.stack([
+            plane_in_query(self._planes[int(pred.plane_index[i])].canon_u8.amax(0).numpy() > 0,
+                           pred.query_H_canon[i].double().cpu().numpy(), S) for i in rows]))
 
     def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
                            found: list[np.ndarray | None], visibility: torch.Tensor | None = None,

@@ -97,6 +97,7 @@ class RecognizerOptions:
     flow_pose: str | FlowPose = "always"
     pose_judge: str = "both"
     lookalike_ratio: float | None = 1.1
+    uncover: float | None = 0.7
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
@@ -145,6 +146,11 @@ class RecognizerOptions:
                 raise MatlError(f"lookalike_ratio={self.lookalike_ratio!r} is invalid: use a factor >= 1 (e.g. 1.1) or "
                                 "None (no look-alike comparison)")
             self.lookalike_ratio = float(self.lookalike_ratio)
+        if self.uncover is not None:
+            if not is_number(self.uncover) or not 0.0 < self.uncover <= 1.0:
+                raise MatlError(f"uncover={self.uncover!r} is invalid: use a share of the crop in (0, 1] (e.g. 0.7) or "
+                                "None (never)")
+            self.uncover = float(self.uncover)
         if self.pose_judge not in POSE_JUDGES:
             raise MatlError(f"pose_judge={self.pose_judge!r} is invalid: use {' or '.join(POSE_JUDGES)}")
         self.verify_top_k, self.verify_max = int(top_k), float(self.verify_max)

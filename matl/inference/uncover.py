@@ -1,0 +1,83 @@
+"""The product a crop was cut for, under another product lying across it (``uncover``).
+
+In a picking bin the product the robot is after often has another product lying across it. That product is on top,
+so its print is whole: it verifies, and the recognizer can answer it instead of the product the crop was cut for.
+Two facts tell them apart. The crop is cut for its subject, so the subject's plane (its hidden part included) covers
+most of what the crop shows, and a product lying across it covers less; and where their planes overlap the pixels
+show the one on top. So an answer whose pose verifies but whose plane covers less than ``uncover`` of the crop's
+shown pixels is explained away: its plane is erased from the crop's foreground and the rest is answered again (the
+whole query path: networks, verification, keypoint pose). The rest's answer is taken where it is another product,
+its pose verifies over what is left, its plane covers more of the crop than the first answer's, and the first
+answer lies on top of it (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers less of the crop,
+and a subject lying on top of another product is not under it, so both keep their answer.
+
+This module holds the geometry (pure functions); :meth:`~matl.inference.query_passes.QueryPasses._uncovered` runs
+the step.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+#: a pixel of the query counts as shown where its visibility is above 0.5 and its brightest channel above this: a crop
+#: on black (no mask found, visibility all ones) shows its product, not its background
+SHOWN_LEVEL = 0.1
+#: the explained plane is erased from the crop's foreground grown by this many pixels of the file (its edge, a pose
+#: a pixel off)
+ERASE_PX = 2
+#: fewest overlap pixels :func:`lies_on_top` judges; with fewer there is no evidence of which one is on top
+MIN_OVERLAP = 20
+
+
+def shown_pixels(queries: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
+    """``(B, S, S)`` bool: the pixels the model-size queries ``(B, 3, S, S)`` show (brighter than
+    :data:`SHOWN_LEVEL` in some channel, and visible above 0.5 in ``visibility`` ``(B, 1, S, S)`` when given)."""
+    shown = queries.amax(1) > SHOWN_LEVEL
+    if visibility is not None:
+        shown &= visibility[:, 0].to(shown.device) > 0.5
+    return shown
+
+
+def covered_share(plane: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` float: the share of each query's shown pixels ``(B, S, S)`` bool that its plane ``(B, S, S)`` bool
+    covers (0 where nothing is shown)."""
+    count = shown.flatten(1).sum(1).double()
+    return torch.where(count > 0, (plane & shown).flatten(1).sum(1).double() / count.clamp_min(1.0),
+                       torch.zeros_like(count))
+
+
+def plane_in_query(plane: np.ndarray, query_H_canon: np.ndarray, size: int) -> np.ndarray:
+    """``(S, S)`` bool: a plane's foreground ``plane`` ``(S, S)`` bool in its canonical frame, warped into the query's
+    model frame by ``query_H_canon`` ``(3, 3)`` (bilinear, above one half)."""
+    warped = cv2.warpPerspective(plane.astype(np.float32), np.asarray(query_H_canon, dtype=np.float64), (size, size),
+                                 flags=cv2.INTER_LINEAR)
+    return warped > 0.5
+
+
+def erased_alpha(alpha: np.ndarray, plane: np.ndarray, model_H_file: np.ndarray, grow: int = ERASE_PX) -> np.ndarray:
+    """A crop's foreground alpha ``(H, W)`` float32 with a plane erased: ``plane`` ``(S, S)`` bool in the model
+    frame, brought to the file's pixels by the inverse of the framing ``model_H_file`` ``(3, 3)`` and grown by
+    ``grow`` px there."""
+    h, w = alpha.shape
+    file_H_model = np.linalg.inv(np.asarray(model_H_file, dtype=np.float64))
+    erased = cv2.warpPerspective(plane.astype(np.uint8), file_H_model, (w, h), flags=cv2.INTER_NEAREST)
+    if grow > 0:
+        erased = cv2.dilate(erased, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+    return np.ascontiguousarray(alpha * (1.0 - erased.astype(np.float32)), dtype=np.float32)
+
+
+def _zncc(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / ((a * a).sum() * (b * b).sum()).sqrt().clamp_min(1e-12))
+
+
+def lies_on_top(query: torch.Tensor, top: torch.Tensor, under: torch.Tensor, overlap: torch.Tensor) -> bool | None:
+    """Whether, over ``overlap`` ``(S, S)`` bool, the query ``(3, S, S)`` shows the print of ``top`` rather than that
+    of ``under`` (each ``(3, S, S)``: an anchor warped into the query's frame by its pose): the one that shows is
+    the one on top. Returns None with fewer than :data:`MIN_OVERLAP` overlap pixels (no evidence)."""
+    if int(overlap.sum()) < MIN_OVERLAP:
+        return None
+    q, a, b = (x[:, overlap].double() for x in (query, top, under))
+    return _zncc(q, a) > _zncc(q, b)

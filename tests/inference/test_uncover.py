@@ -1,0 +1,102 @@
+"""``uncover``: a product lying across the one a crop was cut for is explained away and the rest answered again."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matl import Recognizer
+from matl.data.image_files import fit_geometry
+from matl.inference.uncover import MIN_OVERLAP, covered_share, erased_alpha, lies_on_top, shown_pixels
+from matl.utils.errors import MatlError
+from tests.inference.test_api import SIZE, StubModel, stub_recognizer
+from tests.inference.test_keypoint_pose import GALLERY_HW, print_like
+from tests.predict_helpers import write_png
+
+#: where the product lies in the crop file (rows, columns of black around it)
+MARGIN = 20
+#: the card lying across the box covers its print's columns up to here (40 % of them)
+CARD_COLUMNS = 64
+
+
+def test_shown_pixels_and_the_share_a_plane_covers() -> None:
+    queries = torch.zeros(1, 3, 4, 4)
+    queries[0, 0, :, :3] = 0.5  # three columns bright, the last one black
+    visibility = torch.ones(1, 1, 4, 4)
+    visibility[0, 0, 0] = 0.0  # the first row not shown by the mask
+    shown = shown_pixels(queries, visibility)
+    assert shown.sum() == 9 and not shown[0, 0].any() and not shown[0, :, 3].any()
+    assert shown_pixels(queries, None).sum() == 12
+    plane = torch.zeros(1, 4, 4, dtype=torch.bool)
+    plane[0, :, :1] = True  # one column: 3 of the 9 shown pixels
+    assert covered_share(plane, shown).tolist() == pytest.approx([3 / 9])
+    assert covered_share(plane, torch.zeros_like(shown)).tolist() == [0.0]
+
+
+def test_a_plane_is_erased_in_the_files_pixels() -> None:
+    alpha = np.ones((20, 20), np.float32)
+    plane = np.zeros((10, 10), bool)
+    plane[:, :5] = True  # the left half of the model frame
+    model_H_file = np.diag([0.5, 0.5, 1.0])  # the file at twice the model's size
+    kept = erased_alpha(alpha, plane, model_H_file, grow=0)[:18]  # file row 19 maps past the model frame's last row
+    assert kept[:, :9].max() == 0.0 and kept[:, 10:].min() == 1.0
+    grown = erased_alpha(alpha, plane, model_H_file, grow=2)[:18]
+    assert grown[:, :11].max() == 0.0 and grown[:, 12:].min() == 1.0
+
+
+def test_the_print_that_shows_is_on_top() -> None:
+    rng = np.random.default_rng(0)
+    top, under = (torch.from_numpy(rng.uniform(0, 1, (3, 12, 12)).astype(np.float32)) for _ in range(2))
+    overlap = torch.zeros(12, 12, dtype=torch.bool)
+    overlap[2:10, 2:10] = True
+    query = torch.where(overlap, top, under)  # the first print shows where both lie
+    assert lies_on_top(query, top, under, overlap) is True
+    assert lies_on_top(query, under, top, overlap) is False
+    few = torch.zeros_like(overlap)
+    few.view(-1)[:MIN_OVERLAP - 1] = True
+    assert lies_on_top(query, top, under, few) is None
+
+
+def card_across_a_box(root: Path) -> tuple[Path, np.ndarray, torch.Tensor]:
+    """A gallery of a box (a red print) and a card (a blue print on 40 % of its frame, black elsewhere), and a crop on
+    black of the box with the card lying across it; the model-frame pose of both at that crop."""
+    box, card = print_like(0, (0.8, 0.2, 0.1)), print_like(1, (0.1, 0.2, 0.8))
+    card[:, CARD_COLUMNS:] = 0.0
+    write_png(root / "red_box" / "front.png", box)
+    write_png(root / "blue_card" / "front.png", card)
+    h, w = GALLERY_HW
+    crop = np.zeros((h + 2 * MARGIN, w + 2 * MARGIN, 3), np.float32)
+    crop[MARGIN:MARGIN + h, MARGIN:MARGIN + w] = box
+    crop[MARGIN:MARGIN + h, MARGIN:MARGIN + CARD_COLUMNS] = card[:, :CARD_COLUMNS]
+    shift = torch.tensor([[1.0, 0.0, MARGIN], [0.0, 1.0, MARGIN], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    pose = fit_geometry(*crop.shape[:2], SIZE).model_H_file @ shift @ torch.linalg.inv(
+        fit_geometry(h, w, SIZE).model_H_file)
+    return root, (crop * 255).round().astype(np.uint8), pose
+
+
+def test_a_card_lying_across_the_box_is_explained_away(tmp_path: Path) -> None:
+    """``c()`` the mean colour (the card's blue makes it nearest), ``s()`` the pose both share: the card
+    verifies but covers 60 % of what the crop shows, and its print shows where the two overlap; with its plane
+    erased the rest is the box, which verifies on what is left and covers the whole crop."""
+    gallery, crop, pose = card_across_a_box(tmp_path)
+
+    def answer(**options) -> tuple[str | None, bool, float]:
+        rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, flow_pose="none", **options)
+        match = rec.enrol(gallery, cache=False).predict(crop)
+        return match.object, match.known, match.verification
+
+    card, _, card_distance = answer(uncover=None)
+    assert card == "blue_card" and card_distance <= 0.1  # the card lying on top: whole, it verifies
+    box, known, box_distance = answer()  # uncover=0.7, the default
+    assert box == "red_box" and known and box_distance <= 0.1
+    assert answer(uncover=0.5)[0] == "blue_card"  # the card covers just over half the crop: the answer stands
+
+
+def test_uncover_must_be_a_share() -> None:
+    for bad in (0.0, 1.5, "half", float("nan")):
+        with pytest.raises(MatlError, match=r"uncover=.* is invalid: use a share of the crop in \(0, 1\]"):
+            stub_recognizer(uncover=bad)
+    assert stub_recognizer(uncover=None).uncover is None and stub_recognizer(uncover=1).uncover == 1.0
