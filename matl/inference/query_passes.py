@@ -21,7 +21,14 @@ from matl.geometry import warp_image
 from matl.inference.foreground import pose_mask
 from matl.inference.images import _query_visibility, _upscale, _with_rows
 from matl.inference.refine import RefinedRecognizer
-from matl.inference.uncover import covered_share, erased_alpha, lies_on_top, plane_in_query, shown_pixels
+from matl.inference.uncover import (
+    centre_offset,
+    covered_share,
+    erased_alpha,
+    lies_on_top,
+    plane_in_query,
+    shown_pixels,
+)
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.timing import stage
@@ -99,10 +106,10 @@ class QueryPasses:
         """``uncover`` (:mod:`matl.inference.uncover`): each query with a found foreground (an RGB crop) whose answer's
         pose verifies (distance within ``verify_max``, counted as verified or not) but whose plane covers less than
         ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
-        networks, verification and, where on, the keypoint pose); the new answer is taken where it is another product,
-        its pose verifies over what is left, its plane covers more of the crop and the first answer lies on top of it
-        there (counted as verified). Returns the prediction, queries, verification and visibility with the taken
-        rows replaced (the file frame does not change)."""
+        networks, verification and, where on, the keypoint pose); the new answer is taken where it is another
+        product, its pose verifies over what is left, its plane covers more of the crop or lies nearer its centre, and
+        the first answer lies on top of it there (counted as verified). Returns the prediction, queries, verification
+        and visibility with the taken rows replaced (the file frame does not change)."""
         S = self.image_size
         rows = [i for i, (_, _, found) in enumerate(prepared)
                 if found is not None and float(verification.distance[i]) <= self.verify_max]
@@ -134,8 +141,11 @@ class QueryPasses:
         for k, j in enumerate(small):
             i = rows[j]
             if (int(alt_pred.object_index[k]) == int(pred.object_index[i])
-                    or float(alt_verification.distance[k]) > self.verify_max or float(alt_share[k]) <= float(share[j])):
+                    or float(alt_verification.distance[k]) > self.verify_max):
                 continue
+            nearer = self._centre_offset(alt_pred, k) < self._centre_offset(pred, i)
+            if float(alt_share[k]) <= float(share[j]) and not nearer:
+                continue  # no more the crop's subject than the first answer
             anchors = images[torch.stack([pred.gallery_index[i], alt_pred.gallery_index[k]]).to(images.device)]
             poses = torch.stack([pred.query_H_anchor[i].double(), alt_pred.query_H_anchor[k].double()])
             top, under = warp_image(anchors, poses.to(anchors.device), (S, S))
@@ -150,6 +160,12 @@ class QueryPasses:
             visibility = _with_rows(visibility, take, alt_visibility, source)
         return (_with_rows(pred, take, alt_pred, source), _with_rows(queries, take, alt_queries, source),
                 _with_rows(verification, take, alt_verification, source), visibility)
+
+    def _centre_offset(self, pred: Prediction, row: int) -> float:
+        """How far from its query's centre row ``row``'s answered plane lies
+        (:func:`~matl.inference.uncover.centre_offset`)."""
+        plane = self._planes[int(pred.plane_index[row])].canon_u8.amax(0).numpy() > 0
+        return centre_offset(plane, pred.query_H_canon[row].double().cpu().numpy(), self.image_size)
 
     def _answered_planes(self, pred: Prediction, rows: list[int]) -> torch.Tensor:
         """``(R, S, S)`` bool: the answered planes of rows ``rows`` warped into their queries' model frame by the

@@ -2,14 +2,15 @@
 
 In a picking bin the product the robot is after often has another product lying across it. That product is on top,
 so its print is whole: it verifies, and the recognizer can answer it instead of the product the crop was cut for.
-Two facts tell them apart. The crop is cut for its subject, so the subject's plane (its hidden part included) covers
-most of what the crop shows, and a product lying across it covers less; and where their planes overlap the pixels
-show the one on top. So an answer whose pose verifies but whose plane covers less than ``uncover`` of the crop's
-shown pixels is explained away: its plane is erased from the crop's foreground and the rest is answered again (the
-whole query path: networks, verification, keypoint pose). The rest's answer is taken where it is another product,
-its pose verifies over what is left, its plane covers more of the crop than the first answer's, and the first
-answer lies on top of it (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers less of the crop,
-and a subject lying on top of another product is not under it, so both keep their answer.
+Two facts tell them apart. The crop is cut around its subject, so the subject's plane (its hidden part included)
+covers most of what the crop shows and lies about its centre, where a product lying across it covers less or lies
+off centre; and where their planes overlap the pixels show the one on top. So an answer whose pose verifies but
+whose plane covers less than ``uncover`` of the crop's shown pixels is explained away: its plane is erased from the
+crop's foreground and the rest is answered again (the whole query path: networks, verification, keypoint pose).
+The rest's answer is taken where it is another product, its pose verifies over what is left, its plane covers more
+of the crop than the first answer's or lies nearer the crop's centre (:func:`centre_offset`), and the first answer
+lies on top of it (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers less of the crop and lies
+off centre, and a subject lying on another product is not under it, so both keep their answer.
 
 This module holds the geometry (pure functions); :meth:`~matl.inference.query_passes.QueryPasses._uncovered` runs
 the step.
@@ -54,6 +55,19 @@ def plane_in_query(plane: np.ndarray, query_H_canon: np.ndarray, size: int) -> n
     warped = cv2.warpPerspective(plane.astype(np.float32), np.asarray(query_H_canon, dtype=np.float64), (size, size),
                                  flags=cv2.INTER_LINEAR)
     return warped > 0.5
+
+
+def centre_offset(plane: np.ndarray, query_H_canon: np.ndarray, size: int) -> float:
+    """How far from the query frame's centre a plane lies: the centroid of its foreground ``plane`` ``(S, S)`` bool
+    in its canonical frame, mapped by ``query_H_canon`` ``(3, 3)``, in units of the frame's side ``S`` (inf for an
+    empty plane or a centroid mapped to infinity)."""
+    ys, xs = np.nonzero(plane)
+    if len(xs) == 0:
+        return float("inf")
+    x, y, w = np.asarray(query_H_canon, dtype=np.float64) @ np.array([xs.mean(), ys.mean(), 1.0])
+    if abs(w) < 1e-12:
+        return float("inf")
+    return float(np.hypot(x / w - (size - 1) / 2, y / w - (size - 1) / 2) / size)
 
 
 def erased_alpha(alpha: np.ndarray, plane: np.ndarray, model_H_file: np.ndarray, grow: int = ERASE_PX) -> np.ndarray:

@@ -10,7 +10,14 @@ import torch
 
 from matl import Recognizer
 from matl.data.image_files import fit_geometry
-from matl.inference.uncover import MIN_OVERLAP, covered_share, erased_alpha, lies_on_top, shown_pixels
+from matl.inference.uncover import (
+    MIN_OVERLAP,
+    centre_offset,
+    covered_share,
+    erased_alpha,
+    lies_on_top,
+    shown_pixels,
+)
 from matl.utils.errors import MatlError
 from tests.inference.test_api import SIZE, StubModel, stub_recognizer
 from tests.inference.test_keypoint_pose import GALLERY_HW, print_like
@@ -45,6 +52,15 @@ def test_a_plane_is_erased_in_the_files_pixels() -> None:
     assert kept[:, :9].max() == 0.0 and kept[:, 10:].min() == 1.0
     grown = erased_alpha(alpha, plane, model_H_file, grow=2)[:18]
     assert grown[:, :11].max() == 0.0 and grown[:, 12:].min() == 1.0
+
+
+def test_how_far_a_plane_lies_from_the_crops_centre() -> None:
+    plane = np.zeros((11, 11), bool)
+    plane[4:7, 4:7] = True  # centred on pixel (5, 5), the frame's centre
+    assert centre_offset(plane, np.eye(3), 11) == 0.0
+    shift = np.array([[1.0, 0.0, 3.0], [0.0, 1.0, 4.0], [0.0, 0.0, 1.0]])
+    assert centre_offset(plane, shift, 11) == pytest.approx(5.0 / 11)  # moved by (3, 4): 5 px of 11
+    assert centre_offset(np.zeros((11, 11), bool), np.eye(3), 11) == float("inf")
 
 
 def test_the_print_that_shows_is_on_top() -> None:
