@@ -108,7 +108,8 @@ class QueryPasses:
         ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
         networks, verification and, where on, the keypoint pose); the new answer is taken where it is another
         product, its pose verifies over what is left, its plane covers more of the crop or lies nearer its centre, and
-        the first answer lies on top of it there (counted as verified). Returns the prediction, queries, verification
+        the first answer lies on top of it where their planes overlap (counted as verified; planes apart: a
+        neighbour, the answer stands). Returns the prediction, queries, verification
         and visibility with the taken rows replaced (the file frame does not change)."""
         S = self.image_size
         rows = [i for i, (_, _, found) in enumerate(prepared)
@@ -150,7 +151,7 @@ class QueryPasses:
             poses = torch.stack([pred.query_H_anchor[i].double(), alt_pred.query_H_anchor[k].double()])
             top, under = warp_image(anchors, poses.to(anchors.device), (S, S))
             raw = fit_to_model(prepared[i][1], S, self.query_fill)[0].to(top.device)
-            if lies_on_top(raw, top, under, (plane[j] & alt_plane[k] & shown[j]).to(top.device)) is not False:
+            if lies_on_top(raw, top, under, (plane[j] & alt_plane[k] & shown[j]).to(top.device)):  # None: apart
                 take.append(i)
                 source.append(k)
         if not take:

@@ -9,8 +9,9 @@ whose plane covers less than ``uncover`` of the crop's shown pixels is explained
 crop's foreground and the rest is answered again (the whole query path: networks, verification, keypoint pose).
 The rest's answer is taken where it is another product, its pose verifies over what is left, its plane covers more
 of the crop than the first answer's or lies nearer the crop's centre (:func:`centre_offset`), and the first answer
-lies on top of it (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers less of the crop and lies
-off centre, and a subject lying on another product is not under it, so both keep their answer.
+lies on top of it where their planes overlap (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers
+less of the crop and lies off centre, one beside it does not overlap it, and a subject lying on another product is
+not under it, so each keeps its answer.
 
 This module holds the geometry (pure functions); :meth:`~matl.inference.query_passes.QueryPasses._uncovered` runs
 the step.
