@@ -76,32 +76,38 @@ def test_the_print_that_shows_is_on_top() -> None:
     assert lies_on_top(query, top, under, few) is None
 
 
-def card_across_a_box(root: Path) -> tuple[Path, np.ndarray, torch.Tensor]:
+def card_across_a_box(root: Path) -> tuple[Path, np.ndarray, np.ndarray, torch.Tensor]:
     """A gallery of a box (a red print) and a card (a blue print on 40 % of its frame, black elsewhere), and a crop on
-    black of the box with the card lying across it; the model-frame pose of both at that crop."""
+    black of the box with the card lying across it, the same crop of the card alone, and the model-frame pose of both
+    products at that crop."""
     box, card = print_like(0, (0.8, 0.2, 0.1)), print_like(1, (0.1, 0.2, 0.8))
     card[:, CARD_COLUMNS:] = 0.0
     write_png(root / "red_box" / "front.png", box)
     write_png(root / "blue_card" / "front.png", card)
     h, w = GALLERY_HW
     crop = np.zeros((h + 2 * MARGIN, w + 2 * MARGIN, 3), np.float32)
+    alone = crop.copy()
+    alone[MARGIN:MARGIN + h, MARGIN:MARGIN + CARD_COLUMNS] = card[:, :CARD_COLUMNS]
     crop[MARGIN:MARGIN + h, MARGIN:MARGIN + w] = box
     crop[MARGIN:MARGIN + h, MARGIN:MARGIN + CARD_COLUMNS] = card[:, :CARD_COLUMNS]
     shift = torch.tensor([[1.0, 0.0, MARGIN], [0.0, 1.0, MARGIN], [0.0, 0.0, 1.0]], dtype=torch.float64)
     pose = fit_geometry(*crop.shape[:2], SIZE).model_H_file @ shift @ torch.linalg.inv(
         fit_geometry(h, w, SIZE).model_H_file)
-    return root, (crop * 255).round().astype(np.uint8), pose
+    return root, *((x * 255).round().astype(np.uint8) for x in (crop, alone)), pose
 
 
 def test_a_card_lying_across_the_box_is_explained_away(tmp_path: Path) -> None:
     """``c()`` the mean colour (the card's blue makes it nearest), ``s()`` the pose both share: the card
     verifies but covers 60 % of what the crop shows, and its print shows where the two overlap; with its plane
     erased the rest is the box, which verifies on what is left and covers the whole crop."""
-    gallery, crop, pose = card_across_a_box(tmp_path)
+    gallery, crop, alone, pose = card_across_a_box(tmp_path)
+
+    def recognizer(**options) -> Recognizer:
+        rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, flow_pose="none", **options)
+        return rec.enrol(gallery, cache=False)
 
     def answer(**options) -> tuple[str | None, bool, float]:
-        rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, flow_pose="none", **options)
-        match = rec.enrol(gallery, cache=False).predict(crop)
+        match = recognizer(**options).predict(crop)
         return match.object, match.known, match.verification
 
     card, _, card_distance = answer(uncover=None)
@@ -109,6 +115,9 @@ def test_a_card_lying_across_the_box_is_explained_away(tmp_path: Path) -> None:
     box, known, box_distance = answer()  # uncover=0.7, the default
     assert box == "red_box" and known and box_distance <= 0.1
     assert answer(uncover=0.5)[0] == "blue_card"  # the card covers just over half the crop: the answer stands
+    # in a batch, beside crops of the card alone (which cover what they show: not answered again), each row keeps
+    # its own answer
+    assert [m.object for m in recognizer().predict([alone, crop, alone])] == ["blue_card", "red_box", "blue_card"]
 
 
 def test_uncover_must_be_a_share() -> None:
