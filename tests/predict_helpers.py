@@ -21,7 +21,7 @@ from tests.conftest import TINY, compose_config
 
 REPO = Path(__file__).resolve().parents[1]
 RECORD_KEYS = {"image", "object", "plane", "known", "nearest_object", "anchor", "distance", "score", "statistic",
-               "H", "gallery_image", "verification"}
+               "H", "gallery_image", "verification", "covered_by"}
 
 
 # --------------------------------------------------------------------------------------- helpers

@@ -100,7 +100,7 @@ from matl.inference.images import (
 )
 from matl.inference.keypoint_pose import KeypointPose, KeypointPoses
 from matl.inference.quantize import calibration_images, quantize_recognizer
-from matl.inference.query_passes import QueryPasses
+from matl.inference.query_passes import Covering, QueryPasses
 from matl.inference.recognizer_options import OPEN_SET_STATISTICS, RecognizerOptions
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import runtime_path
@@ -149,6 +149,8 @@ class Match:
         gallery_image: the gallery file of the plane (None for a plane added as an array).
         alternatives: the next-nearest *other* products (``top_k - 1`` of them), each as a Match of its
             nearest plane (``anchor`` -1, no ``H``, ``score`` NaN).
+        covered_by: a product found lying across this one (``uncover``: the crop's first answer, whose print
+            verified, explained away), as a Match with its own ``H`` in the query's pixels; None otherwise.
     """
 
     object: str | None
@@ -164,6 +166,7 @@ class Match:
     alternatives: list[Match] = field(default_factory=list)
     statistic: float = float("nan")
     verification: float = float("nan")
+    covered_by: Match | None = None
 
 
 
@@ -571,6 +574,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         with stage(self.stage_timer, "foreground"):
             prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
         pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
+        covering: dict[int, Covering] = {}  # uncover: what lies across a row's answer
         taken = None  # (the features, their per-product distances): kept for the open-set answer while they hold
         if (verification is not None and pred.query_H_anchor is not None and pred.features is not None
                 and self.lookalike_ratio is not None):  # a near twin compared over the whole plane
@@ -583,7 +587,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if verification is not None and self.uncover is not None and pred.query_H_canon is not None:
             # a verified product lying across the one the crop was cut for is explained away
             with stage(self.stage_timer, "uncover"):
-                pred, queries, verification, visibility = self._uncovered(
+                pred, queries, verification, visibility, covering = self._uncovered(
                     recognizer, prepared, pred, queries, query_H_file, verification, visibility)
         if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
@@ -617,6 +621,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                                        float(statistic[i]), None if H is None else H[i].numpy(), threshold,
                                        alternatives[i],
                                        float("nan") if verification is None else float(verification.distance[i])))
+        for i, top in covering.items():  # the product lying across the answer, posed in the caller's pixels
+            top_H = pose_in_files(top.query_H_canon[None], self._planes[top.plane].canon_H_file[None],
+                                  query_H_file[i:i + 1])[0].numpy()
+            matches[i].covered_by = self._match(top.plane, top.anchor, top.distance, 0.0, top_H, None, [],
+                                                top.verification)
         return matches, pred, queries
 
     def _match(self, plane: int, anchor: int, distance: float, statistic: float, H: np.ndarray | None,

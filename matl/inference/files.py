@@ -59,6 +59,11 @@ def record_of(path: Path, match: Match) -> dict[str, Any]:
         "verification": _finite(match.verification),  # 1 - ZNCC of the answer's pose (null: not verified)
         "H": None if match.H is None else match.H.tolist(),
         "gallery_image": match.gallery_image,
+        # uncover: a product found lying across this one, with its own pose in the file (null: none)
+        "covered_by": None if match.covered_by is None else {
+            "object": match.covered_by.object, "plane": match.covered_by.plane,
+            "verification": _finite(match.covered_by.verification),
+            "H": None if match.covered_by.H is None else match.covered_by.H.tolist()},
     }
 
 

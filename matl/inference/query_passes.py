@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -32,6 +32,16 @@ from matl.inference.uncover import (
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.timing import stage
+
+
+class Covering(NamedTuple):
+    """A product found lying across a query's answer (``uncover``): the first answer, explained away."""
+
+    plane: int                    # its enrolled plane
+    anchor: int                   # its anchor's rotation index
+    distance: float               # its feature distance
+    query_H_canon: torch.Tensor   # (3, 3) float64 its pixel pose in the query's model frame
+    verification: float           # its verification distance
 
 
 class QueryPasses:
@@ -102,20 +112,21 @@ class QueryPasses:
     def _uncovered(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
                    pred: Prediction, queries: torch.Tensor, query_H_file: torch.Tensor, verification: Verification,
                    visibility: torch.Tensor | None
-                   ) -> tuple[Prediction, torch.Tensor, Verification, torch.Tensor | None]:
+                   ) -> tuple[Prediction, torch.Tensor, Verification, torch.Tensor | None, dict[int, Covering]]:
         """``uncover`` (:mod:`matl.inference.uncover`): each query with a found foreground (an RGB crop) whose answer's
         pose verifies (distance within ``verify_max``, counted as verified or not) but whose plane covers less than
         ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
         networks, verification and, where on, the keypoint pose); the new answer is taken where it is another
         product, its pose verifies over what is left, its plane covers more of the crop or lies nearer its centre, and
         the first answer lies on top of it where their planes overlap (counted as verified; planes apart: a
-        neighbour, the answer stands). Returns the prediction, queries, verification
-        and visibility with the taken rows replaced (the file frame does not change)."""
+        neighbour, the answer stands). Returns the prediction, queries, verification and visibility with the taken
+        rows replaced (the file frame does not change), and each taken row's first answer (:class:`Covering`: the
+        product lying across it)."""
         S = self.image_size
         rows = [i for i, (_, _, found) in enumerate(prepared)
                 if found is not None and float(verification.distance[i]) <= self.verify_max]
         if not rows:
-            return pred, queries, verification, visibility
+            return pred, queries, verification, visibility, {}
         if int(self.foreground.passes) == 0:  # the queries as the foreground step masked them
             framed = queries[rows]
         else:  # the pose passes masked them by the answered plane too: the foreground step's mask alone
@@ -125,7 +136,7 @@ class QueryPasses:
         share = covered_share(plane, shown)
         small = [j for j in range(len(rows)) if float(share[j]) < self.uncover]
         if not small:
-            return pred, queries, verification, visibility
+            return pred, queries, verification, visibility, {}
         again = []
         for j in small:
             i = rows[j]
@@ -155,12 +166,14 @@ class QueryPasses:
                 take.append(i)
                 source.append(k)
         if not take:
-            return pred, queries, verification, visibility
+            return pred, queries, verification, visibility, {}
+        covering = {i: Covering(int(pred.plane_index[i]), int(pred.anchor_index[i]), float(pred.distance[i]),
+                                pred.query_H_canon[i].double().cpu(), float(verification.distance[i])) for i in take}
         alt_verification = dataclasses.replace(alt_verification, verified=torch.ones_like(alt_verification.verified))
         if visibility is not None:  # an RGB crop with a found foreground always has a visibility
             visibility = _with_rows(visibility, take, alt_visibility, source)
         return (_with_rows(pred, take, alt_pred, source), _with_rows(queries, take, alt_queries, source),
-                _with_rows(verification, take, alt_verification, source), visibility)
+                _with_rows(verification, take, alt_verification, source), visibility, covering)
 
     def _centre_offset(self, pred: Prediction, row: int) -> float:
         """How far from its query's centre row ``row``'s answered plane lies

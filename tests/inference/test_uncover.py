@@ -10,6 +10,8 @@ import torch
 
 from matl import Recognizer
 from matl.data.image_files import fit_geometry
+from matl.geometry import corner_error_px
+from matl.inference.files import record_of
 from matl.inference.uncover import (
     MIN_OVERLAP,
     centre_offset,
@@ -114,6 +116,16 @@ def test_a_card_lying_across_the_box_is_explained_away(tmp_path: Path) -> None:
     assert card == "blue_card" and card_distance <= 0.1  # the card lying on top: whole, it verifies
     box, known, box_distance = answer()  # uncover=0.7, the default
     assert box == "red_box" and known and box_distance <= 0.1
+    # the card is not lost: the answer says what lies across it, posed in the crop's pixels (a shift by MARGIN)
+    match = recognizer().predict(crop)
+    top = match.covered_by
+    assert top is not None and top.object == "blue_card" and top.known and top.verification <= 0.1
+    true_H = np.array([[1.0, 0.0, MARGIN], [0.0, 1.0, MARGIN], [0.0, 0.0, 1.0]])
+    assert float(corner_error_px(torch.from_numpy(top.H)[None], torch.from_numpy(true_H)[None], GALLERY_HW)) < 1.0
+    record = record_of(Path("crop.png"), match)
+    assert record["covered_by"]["object"] == "blue_card" and np.allclose(record["covered_by"]["H"], top.H)
+    assert recognizer(uncover=None).predict(crop).covered_by is None
+    assert record_of(Path("crop.png"), recognizer(uncover=None).predict(crop))["covered_by"] is None
     assert answer(uncover=0.5)[0] == "blue_card"  # the card covers just over half the crop: the answer stands
     # in a batch, beside crops of the card alone (which cover what they show: not answered again), each row keeps
     # its own answer
