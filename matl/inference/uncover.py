@@ -23,6 +23,8 @@ import cv2
 import numpy as np
 import torch
 
+from matl.inference.verify import zncc
+
 #: a pixel of the query counts as shown where its visibility is above 0.5 and its brightest channel above this: a crop
 #: on black (no mask found, visibility all ones) shows its product, not its background
 SHOWN_LEVEL = 0.1
@@ -83,16 +85,12 @@ def erased_alpha(alpha: np.ndarray, plane: np.ndarray, model_H_file: np.ndarray,
     return np.ascontiguousarray(alpha * (1.0 - erased.astype(np.float32)), dtype=np.float32)
 
 
-def _zncc(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a - a.mean(), b - b.mean()
-    return float((a * b).sum() / ((a * a).sum() * (b * b).sum()).sqrt().clamp_min(1e-12))
-
-
 def lies_on_top(query: torch.Tensor, top: torch.Tensor, under: torch.Tensor, overlap: torch.Tensor) -> bool | None:
     """Whether, over ``overlap`` ``(S, S)`` bool, the query ``(3, S, S)`` shows the print of ``top`` rather than that
     of ``under`` (each ``(3, S, S)``: an anchor warped into the query's frame by its pose): the one that shows is
-    the one on top. Returns None with fewer than :data:`MIN_OVERLAP` overlap pixels (no evidence)."""
+    the one on top (:func:`~matl.inference.verify.zncc`, the verification's correlation). Returns None with fewer
+    than :data:`MIN_OVERLAP` overlap pixels (no evidence)."""
     if int(overlap.sum()) < MIN_OVERLAP:
         return None
-    q, a, b = (x[:, overlap].double() for x in (query, top, under))
-    return _zncc(q, a) > _zncc(q, b)
+    both = zncc(query[None].expand(2, -1, -1, -1), torch.stack([top, under]), overlap[None, None].expand(2, -1, -1, -1))
+    return bool(both[0] > both[1])
