@@ -178,16 +178,20 @@ class QueryPasses:
     def _centre_offset(self, pred: Prediction, row: int) -> float:
         """How far from its query's centre row ``row``'s answered plane lies
         (:func:`~matl.inference.uncover.centre_offset`)."""
-        plane = self._planes[int(pred.plane_index[row])].canon_u8.amax(0).numpy() > 0
-        return centre_offset(plane, pred.query_H_canon[row].double().cpu().numpy(), self.image_size)
+        return centre_offset(self._plane_foreground(int(pred.plane_index[row])),
+                             pred.query_H_canon[row].double().cpu().numpy(), self.image_size)
 
     def _answered_planes(self, pred: Prediction, rows: list[int]) -> torch.Tensor:
         """``(R, S, S)`` bool: the answered planes of rows ``rows`` warped into their queries' model frame by the
         answers' poses."""
         S = self.image_size
         return torch.from_numpy(np.stack([
-            plane_in_query(self._planes[int(pred.plane_index[i])].canon_u8.amax(0).numpy() > 0,
+            plane_in_query(self._plane_foreground(int(pred.plane_index[i])),
                            pred.query_H_canon[i].double().cpu().numpy(), S) for i in rows]))
+
+    def _plane_foreground(self, plane: int) -> np.ndarray:
+        """``(S, S)`` bool: enrolled plane ``plane``'s foreground in its canonical frame (its non-zero pixels)."""
+        return self._planes[plane].canon_u8.amax(0).numpy() > 0
 
     def _foreground_passes(self, recognizer: Any, queries: torch.Tensor, rgbs: list[np.ndarray],
                            found: list[np.ndarray | None], visibility: torch.Tensor | None = None,
