@@ -15,14 +15,15 @@ Recognizer's ``pose_judge``: by default the sum of its verification distance,
 :func:`~matl.inference.verify.verification_distance` over the query's visibility, and of
 :func:`~matl.inference.verify.explained_distance`, which compares both poses over the query's own visible pixels,
 so neither a pose that shrinks the plane onto a few well-matching pixels nor one that stretches it over the mask
-wins by that alone): it never changes the product or the plane, and an answer it alone brings under ``verify_max`` is
-not counted as verified: the open set judges it by its statistic, because the flow can fit a near twin's print to an
-unenrolled product's crop well enough to verify. It is not refined afterwards: from a flow pose under an occluder the
-refinement moves the pose away more often than closer.
+wins by that alone): it never changes the product or the plane. An answer whose pose failed verification and that
+the flow pose brings within ``verifies`` counts as verified (a partly hidden product the networks posed far off);
+one held unverified below ``verify_max`` for another reason stays so. It is not refined afterwards: from a flow
+pose under an occluder the refinement moves the pose away more often than closer.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,9 +81,11 @@ class FlowPose(StageSettings):
             size) exceeds this: flat print carries no flow.
         dark: anchor pixels of at most this luminance (0-255) are left out: the background (0 by convention) and the
             darkest print, which the black of a query's masked-out pixels cannot be told from.
-        verifies: an answer the flow pose brings to a verification distance of at most this counts as verified by
-            the open set; None (default): only answers that verified before the flow pose do (the flow can fit a
-            near twin's print to an unenrolled product's crop well enough to pass ``verify_max``).
+        verifies: an answer whose pose did not verify (verification distance above the Recognizer's ``verify_max``)
+            and that the flow pose brings to at most this counts as verified by the open set (a partly hidden
+            product posed right by the flow is known); an answer held unverified for another reason (another
+            product's keypoint pose, which can be a product lying across an unenrolled one) stays unverified. None:
+            the flow pose never makes an answer count as verified (docs/decisions.md).
         max_upscale: a query whose file was enlarged more than this many times to the model's size is left as it is
             (its print is too blurred against the sharp anchor: on validation 40 px crops lost 0.03 of their refined
             ``pose_acc_5px`` to the flow pose); None: every query.
@@ -99,7 +102,7 @@ class FlowPose(StageSettings):
     min_points: int = 12
     texture: float = 20.0
     dark: float = 8.0
-    verifies: float | None = None
+    verifies: float | None = 0.08
     max_upscale: float | None = 1.5
 
     def __post_init__(self) -> None:
@@ -229,7 +232,16 @@ class FlowPoses:
             if not found:
                 return pred, verification
             at = [i for i, _ in found]
-            # verified stays as it was unless the flow pose verifies within ``verifies``: an answer it alone makes
-            # verify is judged known by the open-set statistic
-            return self._take_judged_better(queries, pred, verification, at, torch.stack([p for _, p in found]),
-                                            visibility, settings.verifies)
+            # an answer whose pose failed the statistic (above verify_max) may be made to verify by the flow pose
+            # (within ``verifies``); one held unverified below it (another product's keypoint pose) stays so
+            failed = [i for i in at if float(verification.distance[i]) > self.verify_max]
+            pred, verification = self._take_judged_better(queries, pred, verification, at,
+                                                          torch.stack([p for _, p in found]), visibility, None)
+            if settings.verifies is None:
+                return pred, verification
+            made = [i for i in failed if float(verification.distance[i]) <= settings.verifies]
+            if not made:
+                return pred, verification
+            verified = verification.verified.clone()
+            verified[made] = True
+            return pred, dataclasses.replace(verification, verified=verified)

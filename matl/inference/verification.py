@@ -14,6 +14,7 @@ import torch
 
 from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
+from matl.inference.flow_pose import FlowPose
 from matl.inference.images import _with_rows
 from matl.inference.verify import (
     CandidatePose,
@@ -28,8 +29,8 @@ from matl.utils.timing import stage
 
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
 #: ``refine_check=judge``: a refined answer whose verification distance is above this (or that does not verify) meets
-#: its unrefined pose (the flow pose's ``above``: a pose verifying that closely is left as it is)
-DOUBTFUL = 0.03
+#: its unrefined pose (the flow pose's default ``above``: a pose verifying that closely is left as it is)
+DOUBTFUL = FlowPose.above
 #: ``lookalike_ratio``: most other products within the ratio a verified answer meets, nearest first (a look-alike
 #: family of up to 4)
 LOOKALIKE_RIVALS = 3

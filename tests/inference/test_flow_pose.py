@@ -143,10 +143,33 @@ def test_an_answer_the_flow_pose_alone_makes_verify_counts_as_verified_only_with
     def answer(**options) -> Match:
         return off_pose_recognizer(4.0, **strict, **options).enrol(gallery, cache=False).predict(query)
 
-    plain, flowed = answer(flow_pose="none"), answer()
+    plain, never = answer(flow_pose="none"), answer(flow_pose=FlowPose(mode="always", verifies=None))
     counted = answer(flow_pose=FlowPose(mode="always", verifies=0.3))
-    assert plain.verification > 0.3 and flowed.verification <= 0.3 and counted.verification == flowed.verification
-    assert flowed.statistic == plain.statistic > 0.0 and counted.statistic == 0.0
+    below = answer(flow_pose=FlowPose(mode="always", verifies=never.verification - 1e-6))
+    assert plain.verification > 0.3 and never.verification <= 0.3 and counted.verification == never.verification
+    assert never.statistic == plain.statistic > 0.0 and counted.statistic == 0.0 and below.statistic > 0.0
+    default = answer()  # verifies=0.08
+    assert default.verification == never.verification
+    assert (default.statistic == 0.0) == (default.verification <= 0.08)
+    assert FlowPose().verifies == 0.08
+
+
+def test_an_answer_held_unverified_below_verify_max_stays_so(gallery: Path) -> None:
+    # an answer whose pose verifies but that is not counted as verified (another product's keypoint pose, which can
+    # be a product lying across an unenrolled one) is not made verified by the flow pose
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    recognizer = off_pose_recognizer(4.0, verify_max=2.0, flow_pose=FlowPose(mode="always", verifies=2.0)).enrol(
+        gallery, cache=False)
+    held = recognizer._flow_poses
+
+    def flow_poses(queries, pred, verification, visibility, upscale=None):
+        unverified = dataclasses.replace(verification, verified=torch.zeros_like(verification.verified))
+        return held(queries, pred, unverified, visibility, upscale)
+
+    recognizer._flow_poses = flow_poses
+    answer = recognizer.predict(query)
+    assert error_px(answer.H) < 3.0  # the flow pose is taken ...
+    assert answer.statistic > 0.0  # ... and the answer stays unverified
 
 
 def test_a_query_enlarged_beyond_max_upscale_is_left_alone(gallery: Path) -> None:
