@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 import torch
 
+from matl.geometry import corner_error_px
 from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
@@ -42,6 +43,8 @@ __all__ = ["FLOW_POSE_MODES", "FLOW_PRESETS", "FlowPose", "FlowPoses"]
 
 #: when the flow pose is tried: never, for answers that do not verify, for every answer
 FLOW_POSE_MODES = ("none", "unverified", "always")
+#: a flow round that moves the plane's corners (at the model's size) by less than this many px ends the rounds
+SETTLED_PX = 0.1
 #: OpenCV's DIS presets by name
 FLOW_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                 "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -86,6 +89,10 @@ class FlowPose(StageSettings):
             product posed right by the flow is known); an answer held unverified for another reason (another
             product's keypoint pose, which can be a product lying across an unenrolled one) stays unverified. None:
             the flow pose never makes an answer count as verified (docs/decisions.md).
+        rounds: the flow is matched again from the pose of the round before, up to this many rounds (fewer when a
+            round fits no homography, settles or stops converging: :meth:`rounds_of`); each round's pose is judged
+            against the best so far (``pose_judge``), so a start 10-20 px off is reached in steps and a round that
+            drifts is not kept (docs/decisions.md).
         max_upscale: a query whose file was enlarged more than this many times to the model's size is left as it is
             (its print is too blurred against the sharp anchor: on validation 40 px crops lost 0.03 of their refined
             ``pose_acc_5px`` to the flow pose); None: every query.
@@ -104,6 +111,7 @@ class FlowPose(StageSettings):
     dark: float = 8.0
     verifies: float | None = 0.08
     max_upscale: float | None = 1.5
+    rounds: int = 3
 
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
@@ -137,6 +145,9 @@ class FlowPose(StageSettings):
         if self.max_upscale is not None and (not is_number(self.max_upscale) or not self.max_upscale >= 1.0):
             raise MatlError(f"FlowPose max_upscale={self.max_upscale!r} is invalid: use a factor >= 1 or None (every "
                             "query)")
+        if not _integer(self.rounds, 1, 20):
+            raise MatlError(f"FlowPose rounds={self.rounds!r} is invalid: use an integer in [1, 20] (1: one flow from "
+                            "the answer's pose)")
         if self.verifies is not None and (not is_number(self.verifies) or not 0.0 <= self.verifies <= 2.0):
             raise MatlError(f"FlowPose verifies={self.verifies!r} is invalid: use a verification distance in [0, 2] "
                             "or None (the flow pose never makes an answer count as verified)")
@@ -153,7 +164,34 @@ class FlowPose(StageSettings):
 
     def pose(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
              visibility: torch.Tensor | None = None) -> torch.Tensor | None:
-        """The flow pose of one query.
+        """The flow pose of one query: the last of :meth:`rounds_of` (arguments and result as :meth:`matched`'s)."""
+        poses = self.rounds_of(query, anchor, query_H_anchor, visibility)
+        return poses[-1] if poses else None
+
+    def rounds_of(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
+                  visibility: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """The pose of each round of :meth:`matched`, each from the one before, up to ``rounds``: they end when a round
+        fits no homography, moves the plane's corners by less than :data:`SETTLED_PX` (settled) or by no less than the
+        round before (not converging: that round is left out). Arguments as :meth:`matched`'s; ``[]``: no fit."""
+        poses: list[torch.Tensor] = []
+        last_move = float("inf")
+        for _ in range(self.rounds):
+            start = poses[-1] if poses else query_H_anchor
+            found = self.matched(query, anchor, start, visibility)
+            if found is None:
+                break
+            moved = float(corner_error_px(found[None], start.detach().double().cpu()[None], tuple(query.shape[-2:]))[0])
+            if poses and not moved < last_move:
+                break
+            poses.append(found)
+            last_move = moved
+            if moved < SETTLED_PX:
+                break
+        return poses
+
+    def matched(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
+                visibility: torch.Tensor | None = None) -> torch.Tensor | None:
+        """One round of the flow pose of one query: the crop warped by the pose, matched to the anchor, the fit.
 
         Args:
             query: ``(3, S, S)`` the model-size query in [0, 1]; anchor: ``(3, S, S)`` its answer's anchor.
@@ -222,21 +260,24 @@ class FlowPoses:
             return pred, verification
         with stage(self.stage_timer, "flow"):
             images = self._build()[1].images
-            found: list[tuple[int, torch.Tensor]] = []
+            found: list[tuple[int, list[torch.Tensor]]] = []
             for i in rows:
                 g = int(pred.gallery_index[i])
-                pose = settings.pose(queries[i], images[g], pred.query_H_anchor[i],
-                                     None if visibility is None else visibility[i])
-                if pose is not None:
-                    found.append((i, pose))
+                poses = settings.rounds_of(queries[i], images[g], pred.query_H_anchor[i],
+                                           None if visibility is None else visibility[i])
+                if poses:
+                    found.append((i, poses))
             if not found:
                 return pred, verification
-            at = [i for i, _ in found]
             # an answer whose pose failed the statistic (above verify_max) may be made to verify by the flow pose
             # (within ``verifies``); one held unverified below it (another product's keypoint pose) stays so
-            failed = [i for i in at if float(verification.distance[i]) > self.verify_max]
-            pred, verification = self._take_judged_better(queries, pred, verification, at,
-                                                          torch.stack([p for _, p in found]), visibility, None)
+            failed = [i for i, _ in found if float(verification.distance[i]) > self.verify_max]
+            for r in range(settings.rounds):  # each round's pose judged against the best so far
+                at = [(i, poses[r]) for i, poses in found if r < len(poses)]
+                if not at:
+                    break
+                pred, verification = self._take_judged_better(queries, pred, verification, [i for i, _ in at],
+                                                              torch.stack([p for _, p in at]), visibility, None)
             if settings.verifies is None:
                 return pred, verification
             made = [i for i in failed if float(verification.distance[i]) <= settings.verifies]

@@ -59,6 +59,19 @@ def test_a_pose_a_few_px_off_is_corrected(hide: bool) -> None:
     assert pose is not None and pose.dtype == torch.float64 and error(pose) < 1.0
 
 
+def test_rounds_reach_a_start_one_flow_does_not() -> None:
+    anchor, query, visibility = anchor_and_query(True)
+    turn = 0.05
+    far = torch.tensor([[np.cos(turn), -np.sin(turn), 10.0], [np.sin(turn), np.cos(turn), -7.0], [0.0, 0.0, 1.0]],
+                       dtype=torch.float64)
+    start = QUERY_H_ANCHOR @ far
+    assert error(start) > 7.0
+    once = FlowPose(mode="unverified", rounds=1).pose(query, anchor, start, visibility)
+    again = FlowPose(mode="unverified", rounds=3).pose(query, anchor, start, visibility)
+    assert once is not None and again is not None and error(once) > 1.0 and error(again) < 0.5
+    assert FlowPose().rounds == 3  # the default
+
+
 def test_the_true_pose_stays() -> None:
     anchor, query, visibility = anchor_and_query(True)
     pose = FlowPose(mode="unverified").pose(query, anchor, QUERY_H_ANCHOR, visibility)
@@ -81,7 +94,8 @@ def test_no_pose_without_visible_texture() -> None:
     ("finest_scale", -1, "finest_scale=-1"), ("variational_iterations", 1.5, "variational_iterations=1.5"),
     ("reproj_threshold", 0, "reproj_threshold=0"), ("min_points", 3, "min_points=3"),
     ("max_points", 5, "max_points=5"), ("texture", -1, "texture=-1"), ("dark", 255, "dark=255"),
-    ("above", -0.1, "above=-0.1"), ("verifies", 3, "verifies=3"), ("max_upscale", 0.5, "max_upscale=0.5")])
+    ("above", -0.1, "above=-0.1"), ("verifies", 3, "verifies=3"), ("max_upscale", 0.5, "max_upscale=0.5"),
+    ("rounds", 0, "rounds=0")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named.replace("(", r"\(")) as info:
         FlowPose(**{key: value})
