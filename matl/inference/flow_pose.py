@@ -92,7 +92,8 @@ class FlowPose(StageSettings):
         rounds: the flow is matched again from the pose of the round before, up to this many rounds (fewer when a
             round fits no homography, settles or stops converging: :meth:`rounds_of`); each round's pose is judged
             against the best so far (``pose_judge``), so a start 10-20 px off is reached in steps and a round that
-            drifts is not kept (docs/decisions.md).
+            drifts is not kept. 1 (default): one match; 3 posed more validation crops within 5 px on every condition
+            for 2.4-2.7 times the stage's time (docs/decisions.md).
         max_upscale: a query whose file was enlarged more than this many times to the model's size is left as it is
             (its print is too blurred against the sharp anchor: on validation 40 px crops lost 0.03 of their refined
             ``pose_acc_5px`` to the flow pose); None: every query.
@@ -111,7 +112,7 @@ class FlowPose(StageSettings):
     dark: float = 8.0
     verifies: float | None = 0.08
     max_upscale: float | None = 1.5
-    rounds: int = 3
+    rounds: int = 1
 
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:

@@ -69,7 +69,7 @@ def test_rounds_reach_a_start_one_flow_does_not() -> None:
     once = FlowPose(mode="unverified", rounds=1).pose(query, anchor, start, visibility)
     again = FlowPose(mode="unverified", rounds=3).pose(query, anchor, start, visibility)
     assert once is not None and again is not None and error(once) > 1.0 and error(again) < 0.5
-    assert FlowPose().rounds == 3  # the default
+    assert FlowPose().rounds == 1  # the default
 
 
 def test_the_true_pose_stays() -> None:
