@@ -92,7 +92,7 @@ def sweep_verifies(folder: Path, ckpt: str, values: list[str]) -> None:
     for value in values:
         rec.flow_pose = FlowPose(mode="always", verifies=None if value == "none" else float(value))
         answers = rec.predict([str(folder / t["image"]) for t in enrolled + left_out])  # one call: batched
-        known = sum(a.object == t["object"] for a, t in zip(answers, enrolled, strict=False))
+        known = sum(a.object == t["object"] for a, t in zip(answers[:len(enrolled)], enrolled, strict=True))
         unknown = sum(a.object is None for a in answers[len(enrolled):])
         print(f"verifies={value}: enrolled answered right and known {known / max(len(enrolled), 1):.3f}, left-out "
               f"answered unknown {unknown / max(len(left_out), 1):.3f} ({len(enrolled)} / {len(left_out)} queries)")
