@@ -92,8 +92,10 @@ class FlowPose(StageSettings):
         rounds: the flow is matched again from the pose of the round before, up to this many rounds (fewer when a
             round fits no homography, settles or stops converging: :meth:`rounds_of`); each round's pose is judged
             against the best so far (``pose_judge``), so a start 10-20 px off is reached in steps and a round that
-            drifts is not kept. 1 (default): one match; 3 posed more validation crops within 5 px on every condition
-            for 2.4-2.7 times the stage's time (docs/decisions.md).
+            drifts is not kept. In a Recognizer the rounds after the first go on only for the answers that still do not
+            verify (verification distance above ``verify_max``): a pose that verifies is left to the first round.
+            3 (default): on validation more partly hidden products posed within 5 px and answered known than with 1,
+            as many as with 5 (docs/decisions.md); 1: one match.
         max_upscale: a query whose file was enlarged more than this many times to the model's size is left as it is
             (its print is too blurred against the sharp anchor: on validation 40 px crops lost 0.03 of their refined
             ``pose_acc_5px`` to the flow pose); None: every query.
@@ -112,7 +114,7 @@ class FlowPose(StageSettings):
     dark: float = 8.0
     verifies: float | None = 0.08
     max_upscale: float | None = 1.5
-    rounds: int = 1
+    rounds: int = 3
 
     def __post_init__(self) -> None:
         if self.mode not in FLOW_POSE_MODES:
@@ -175,20 +177,28 @@ class FlowPose(StageSettings):
         fits no homography, moves the plane's corners by less than :data:`SETTLED_PX` (settled) or by no less than the
         round before (not converging: that round is left out). Arguments as :meth:`matched`'s; ``[]``: no fit."""
         poses: list[torch.Tensor] = []
-        last_move = float("inf")
+        start, last_move = query_H_anchor, float("inf")
         for _ in range(self.rounds):
-            start = poses[-1] if poses else query_H_anchor
-            found = self.matched(query, anchor, start, visibility)
-            if found is None:
+            step = self.step(query, anchor, start, visibility, last_move)
+            if step is None:
                 break
-            moved = float(corner_error_px(found[None], start.detach().double().cpu()[None], tuple(query.shape[-2:]))[0])
-            if poses and not moved < last_move:
-                break
-            poses.append(found)
-            last_move = moved
-            if moved < SETTLED_PX:
+            start, last_move = step
+            poses.append(start)
+            if last_move < SETTLED_PX:
                 break
         return poses
+
+    def step(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
+             visibility: torch.Tensor | None, last_move: float) -> tuple[torch.Tensor, float] | None:
+        """One round of :meth:`rounds_of` from ``query_H_anchor``: its pose and how far it moved the plane's corners
+        (px at the model's size); None where it fits no homography or moves them by no less than ``last_move`` (the
+        round before's move; inf for the first round)."""
+        found = self.matched(query, anchor, query_H_anchor, visibility)
+        if found is None:
+            return None
+        moved = float(corner_error_px(found[None], query_H_anchor.detach().double().cpu()[None],
+                                      tuple(query.shape[-2:]))[0])
+        return (found, moved) if moved < last_move else None
 
     def matched(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
                 visibility: torch.Tensor | None = None) -> torch.Tensor | None:
@@ -261,24 +271,23 @@ class FlowPoses:
             return pred, verification
         with stage(self.stage_timer, "flow"):
             images = self._build()[1].images
-            found: list[tuple[int, list[torch.Tensor]]] = []
-            for i in rows:
-                g = int(pred.gallery_index[i])
-                poses = settings.rounds_of(queries[i], images[g], pred.query_H_anchor[i],
-                                           None if visibility is None else visibility[i])
-                if poses:
-                    found.append((i, poses))
-            if not found:
-                return pred, verification
             # an answer whose pose failed the statistic (above verify_max) may be made to verify by the flow pose
             # (within ``verifies``); one held unverified below it (another product's keypoint pose) stays so
-            failed = [i for i, _ in found if float(verification.distance[i]) > self.verify_max]
-            for r in range(settings.rounds):  # each round's pose judged against the best so far
-                at = [(i, poses[r]) for i, poses in found if r < len(poses)]
-                if not at:
+            failed = [i for i in rows if float(verification.distance[i]) > self.verify_max]
+            going = {i: (pred.query_H_anchor[i], float("inf")) for i in rows}  # each row's start and last move
+            for _ in range(settings.rounds):
+                steps = {i: settings.step(queries[i], images[int(pred.gallery_index[i])], start,
+                                          None if visibility is None else visibility[i], last_move)
+                         for i, (start, last_move) in going.items()}
+                steps = {i: found for i, found in steps.items() if found is not None}
+                if not steps:
                     break
-                pred, verification = self._take_judged_better(queries, pred, verification, [i for i, _ in at],
-                                                              torch.stack([p for _, p in at]), visibility, None)
+                at = list(steps)  # each round's pose judged against the best so far
+                pred, verification = self._take_judged_better(queries, pred, verification, at,
+                                                              torch.stack([steps[i][0] for i in at]), visibility, None)
+                # the next round: the rows neither settled nor verifying now
+                going = {i: found for i, found in steps.items()
+                         if found[1] >= SETTLED_PX and float(verification.distance[i]) > self.verify_max}
             if settings.verifies is None:
                 return pred, verification
             made = [i for i in failed if float(verification.distance[i]) <= settings.verifies]

@@ -69,7 +69,7 @@ def test_rounds_reach_a_start_one_flow_does_not() -> None:
     once = FlowPose(mode="unverified", rounds=1).pose(query, anchor, start, visibility)
     again = FlowPose(mode="unverified", rounds=3).pose(query, anchor, start, visibility)
     assert once is not None and again is not None and error(once) > 1.0 and error(again) < 0.5
-    assert FlowPose().rounds == 1  # the default
+    assert FlowPose().rounds == 3  # the default
 
 
 def test_the_true_pose_stays() -> None:
@@ -184,6 +184,28 @@ def test_an_answer_held_unverified_below_verify_max_stays_so(gallery: Path) -> N
     answer = recognizer.predict(query)
     assert error_px(answer.H) < 3.0  # the flow pose is taken ...
     assert answer.statistic > 0.0  # ... and the answer stays unverified
+
+
+def test_rounds_after_the_first_go_on_only_while_the_answer_does_not_verify(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+
+    def rounds_run(verify_max: float) -> tuple[int, Match]:
+        settings = FlowPose(mode="always", above=0.0, rounds=3)
+        one_round, calls = settings.step, []
+
+        def step(*args):
+            calls.append(args)
+            return one_round(*args)
+
+        settings.step = step
+        answer = off_pose_recognizer(4.0, verify_max=verify_max, flow_pose=settings).enrol(
+            gallery, cache=False).predict(query)
+        return len(calls), answer
+
+    verifying, answer = rounds_run(2.0)  # every pose verifies: the first round only
+    assert verifying == 1 and error_px(answer.H) < 3.0
+    strict, answer = rounds_run(1e-6)  # no pose verifies: the rounds go on until they settle or stop converging
+    assert strict > 1 and error_px(answer.H) < 3.0
 
 
 def test_a_query_enlarged_beyond_max_upscale_is_left_alone(gallery: Path) -> None:
