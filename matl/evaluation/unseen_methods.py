@@ -20,18 +20,15 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from matl.inference.recognizer_options import CONFIG_OPTIONS, option_default
 from matl.inference.runtime import runtime_option
 from matl.utils.errors import CONF_DIR, MatlError
 
 METHODS = ("matl", "matl_refine", "sift", "sift_ecc", "lightglue", "xfeat", "xfeat_lighterglue")
 MATL_METHODS = ("matl", "matl_refine")  # the checkpoint's model; the others are keypoint baselines
-# predict's open-set, verification, refine_check, keypoint_pose, flow_pose, pose_judge, lookalike_ratio and uncover
-# keys, the same keys in conf/unseen.yaml (values: their defaults)
-OPEN_SET_KEYS = {"open_set_statistic": "verify", "verify_top_k": 8, "verify_max": 0.1, "verify_blur": 1.0,
-                 "verify_refine": True, "verify_statistic": "patches", "verify_min_visible": 0.3,
-                 "verify_occluded_copies": 0.0, "refine_check": "judge", "keypoint_pose": "unverified",
-                 "flow_pose": "always", "pose_judge": "both", "lookalike_ratio": 1.1,
-                 "uncover": 0.7}
+# predict's open-set, verification and pose-stage keys but the quantile (shared_options writes it first), the same
+# keys in conf/unseen.yaml (values: their defaults)
+OPEN_SET_KEYS = {key: option_default(key) for key in CONFIG_OPTIONS if key != "open_set_quantile"}
 
 
 # -------------------------------------------------------------------------------------- commands
@@ -114,7 +111,7 @@ def shared_options(cfg: DictConfig, ckpt: Path, folder: Path, threshold: float |
     ``queries/``), in the order the recorded commands list them; ``threshold`` None: the closed set."""
     return {"ckpt": ckpt, "gallery": folder / "gallery", "images": folder / "queries", "gallery_fill": gallery_fill,
             "query_fill": query_fill, "batch_size": cfg.batch_size, "device": cfg.device, "threshold": threshold,
-            "open_set_quantile": cfg.get("open_set_quantile", 0.94),
+            "open_set_quantile": cfg.get("open_set_quantile", option_default("open_set_quantile")),
             **{key: cfg.get(key, default) for key, default in OPEN_SET_KEYS.items()}}
 
 

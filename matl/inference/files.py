@@ -25,6 +25,7 @@ from matl.geometry import transfer_points, warp_image
 from matl.inference.api import Match, Recognizer
 from matl.inference.gallery import report_skipped
 from matl.inference.quantize import quantize_option
+from matl.inference.recognizer_options import config_options
 from matl.inference.runtime import runtime_option
 from matl.models.prediction import Prediction
 from matl.utils.config import is_int, validate_config
@@ -205,16 +206,8 @@ def recognizer_from_config(cfg: DictConfig) -> Recognizer:
     recognizer = Recognizer.from_checkpoint(
         cfg.ckpt, device=str(cfg.device), refine=refiner, quantize=quantize_option(cfg),
         runtime=runtime_option(cfg), search=search,
-        threshold=_threshold(cfg), open_set_statistic=str(cfg.get("open_set_statistic", "verify")),
-        open_set_quantile=float(cfg.get("open_set_quantile", 0.94)), verify_top_k=cfg.get("verify_top_k", 8),
-        verify_max=cfg.get("verify_max", 0.1), verify_blur=cfg.get("verify_blur", 1.0),
-        verify_refine=cfg.get("verify_refine", True), verify_statistic=cfg.get("verify_statistic", "patches"),
-        verify_min_visible=cfg.get("verify_min_visible", 0.3),
-        verify_occluded_copies=cfg.get("verify_occluded_copies", 0.0), refine_check=cfg.get("refine_check", "judge"),
-        keypoint_pose=str(cfg.get("keypoint_pose", "unverified")),
-        flow_pose=str(cfg.get("flow_pose", "always")), pose_judge=str(cfg.get("pose_judge", "both")),
-        lookalike_ratio=cfg.get("lookalike_ratio", 1.1), uncover=cfg.get("uncover", 0.7),
-        gallery_fill=float(cfg.gallery_fill), query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size),
+        threshold=_threshold(cfg), **config_options(cfg), gallery_fill=float(cfg.gallery_fill),
+        query_fill=float(cfg.query_fill), batch_size=int(cfg.batch_size),
         foreground=cfg.get("foreground"))
     if cfg.get("image_size") is not None and int(cfg.image_size) != recognizer.image_size:
         raise MatlError(f"checkpoint {cfg.ckpt} was trained at {recognizer.image_size} px, not "

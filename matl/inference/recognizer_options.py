@@ -27,7 +27,8 @@ from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.config import is_number
 from matl.utils.errors import MatlError
 
-__all__ = ["OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOptions"]
+__all__ = ["CONFIG_OPTIONS", "OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOptions",
+           "config_options", "option_default"]
 
 OPEN_SET_STATISTICS = ("verify", "verify_or_ratio", "ratio", "distance")
 #: second judges of a refined pose (Recognizer's ``refine_check``)
@@ -170,3 +171,21 @@ class RecognizerOptions:
         if unknown:
             raise MatlError(f"{', '.join(unknown)}: not a Recognizer option; use {', '.join(names)}")
         return cls(**{str(k): v for k, v in node.items()})
+
+
+#: the keys of predict's config (and matl.unseen's) passed to the Recognizer under their own name: the open set,
+#: verification and the pose stages; a key a config leaves out takes :class:`RecognizerOptions`' default, the one
+#: place the defaults are written in code (conf/predict.yaml and conf/unseen.yaml write the same values)
+CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "verify_top_k", "verify_max", "verify_blur",
+                  "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies", "refine_check",
+                  "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "uncover")
+
+
+def option_default(name: str) -> Any:
+    """:class:`RecognizerOptions`' default of option ``name``."""
+    return {f.name: f.default for f in dataclasses.fields(RecognizerOptions)}[name]
+
+
+def config_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The :data:`CONFIG_OPTIONS` of a config (e.g. predict's), each missing one at its default."""
+    return {key: cfg.get(key, option_default(key)) for key in CONFIG_OPTIONS}

@@ -10,9 +10,10 @@ from omegaconf import OmegaConf
 from matl import Recognizer
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.foreground import GrabCutForeground
-from matl.inference.recognizer_options import RecognizerOptions
+from matl.inference.recognizer_options import CONFIG_OPTIONS, RecognizerOptions, config_options, option_default
 from matl.models.search import ExactSearch, FaissSearch
 from matl.utils.errors import MatlError
+from tests.conftest import compose_config
 from tests.inference.test_api import SIZE, StubModel, exact_model_pose, stub_recognizer
 
 SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_option", "open_set_statistic",
@@ -70,3 +71,11 @@ def test_options_from_a_config_node() -> None:
     assert options.threshold is None and options.verify_top_k == 0 and options.foreground is None
     with pytest.raises(MatlError, match="verify_topk: not a Recognizer option"):
         RecognizerOptions.from_config({"verify_topk": 3})
+
+
+@pytest.mark.parametrize("config", ["predict", "unseen"])
+def test_the_configs_write_the_options_defaults(config: str) -> None:
+    cfg = compose_config(config)
+    assert {key: cfg[key] for key in CONFIG_OPTIONS} == {key: option_default(key) for key in CONFIG_OPTIONS}
+    assert config_options(OmegaConf.create({})) == {key: option_default(key) for key in CONFIG_OPTIONS}
+    assert config_options(OmegaConf.create({"verify_max": 0.2}))["verify_max"] == 0.2
