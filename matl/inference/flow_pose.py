@@ -7,7 +7,8 @@ answer's anchor frame by the answer's pose, is matched to the anchor by OpenCV's
 with its variational refinement), both brought to ``scale`` times the model's size first, where a 100 px product's
 print has enough detail. A homography is fitted by MAGSAC to the flow of the anchor's textured foreground pixels that
 the query shows (its visibility warped by the same pose): the occluder's and the background's flow are outliers. The
-fit, composed with the answer's pose, is the flow pose.
+fit, composed with the answer's pose, is the flow pose. DIS reaches a start that far only in part, so for an answer
+that still does not verify the match is made again from the pose it found (up to ``rounds`` rounds).
 
 It is tried for every answer whose verification distance is above ``above`` (``mode=always``, the default) or for
 those that do not verify (``unverified``), and replaces the answer's pose where it is judged better (the
