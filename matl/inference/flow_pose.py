@@ -91,7 +91,7 @@ class FlowPose(StageSettings):
             product's keypoint pose, which can be a product lying across an unenrolled one) stays unverified. None:
             the flow pose never makes an answer count as verified (docs/decisions.md).
         rounds: the flow is matched again from the pose of the round before, up to this many rounds (fewer when a
-            round fits no homography, settles or stops converging: :meth:`rounds_of`); each round's pose is judged
+            round fits no homography, settles or stops converging: :meth:`pose`); each round's pose is judged
             against the best so far (``pose_judge``), so a start 10-20 px off is reached in steps and a round that
             drifts is not kept. In a Recognizer the rounds after the first go on only for the answers that still do not
             verify (verification distance above ``verify_max``): a pose that verifies is left to the first round.
@@ -168,30 +168,23 @@ class FlowPose(StageSettings):
 
     def pose(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
              visibility: torch.Tensor | None = None) -> torch.Tensor | None:
-        """The flow pose of one query: the last of :meth:`rounds_of` (arguments and result as :meth:`matched`'s)."""
-        poses = self.rounds_of(query, anchor, query_H_anchor, visibility)
-        return poses[-1] if poses else None
-
-    def rounds_of(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
-                  visibility: torch.Tensor | None = None) -> list[torch.Tensor]:
-        """The pose of each round of :meth:`matched`, each from the one before, up to ``rounds``: they end when a round
-        fits no homography, moves the plane's corners by less than :data:`SETTLED_PX` (settled) or by no less than the
-        round before (not converging: that round is left out). Arguments as :meth:`matched`'s; ``[]``: no fit."""
-        poses: list[torch.Tensor] = []
-        start, last_move = query_H_anchor, float("inf")
+        """The flow pose of one query: up to ``rounds`` rounds of :meth:`matched`, each from the one before; they end
+        when a round fits no homography, moves the plane's corners by less than :data:`SETTLED_PX` (settled) or by no
+        less than the round before (not converging: that round is left out). Arguments and result as
+        :meth:`matched`'s; None: the first round fits nothing."""
+        pose, last_move = None, float("inf")
         for _ in range(self.rounds):
-            step = self.step(query, anchor, start, visibility, last_move)
+            step = self.step(query, anchor, query_H_anchor if pose is None else pose, visibility, last_move)
             if step is None:
                 break
-            start, last_move = step
-            poses.append(start)
+            pose, last_move = step
             if last_move < SETTLED_PX:
                 break
-        return poses
+        return pose
 
     def step(self, query: torch.Tensor, anchor: torch.Tensor, query_H_anchor: torch.Tensor,
              visibility: torch.Tensor | None, last_move: float) -> tuple[torch.Tensor, float] | None:
-        """One round of :meth:`rounds_of` from ``query_H_anchor``: its pose and how far it moved the plane's corners
+        """One round of :meth:`pose` from ``query_H_anchor``: its pose and how far it moved the plane's corners
         (px at the model's size); None where it fits no homography or moves them by no less than ``last_move`` (the
         round before's move; inf for the first round)."""
         found = self.matched(query, anchor, query_H_anchor, visibility)
