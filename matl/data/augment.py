@@ -13,7 +13,8 @@ warped foreground masks) into such crops, per image, in one of three framings:
 
 Backgrounds come from a bank built once per run (:meth:`CameraAugment.setup`) from training
 sources only: smooth colour fields, stripes and checks, crops of matplotlib's sample photos and
-terrain data, and shelves of the training catalog's own products; with probability
+terrain data, shelves of the training catalog's own products, and (``textures``, off by default)
+procedural natural-looking textures; ``grey_p`` of them turned grey; with probability
 ``neighbour_p`` a neighbouring product of the catalog is put beside the product, cut by the frame.
 Then the photometric changes of :class:`Photometric` (gain, bias, gamma, tint, blur, noise, JPEG).
 The anchors (gallery images) are never augmented.
@@ -221,6 +222,89 @@ def _shelves(n: int, size: int, canon: torch.Tensor, masks: torch.Tensor, g: tor
     return out
 
 
+def _fractal(rng: np.random.Generator, size: int, roughness: float) -> np.ndarray:
+    """``(size, size)`` float noise in [0, 1]: octaves of random grids, each halving the cell and weighted by
+    ``roughness`` ** octave (near 0: smooth blotches; near 1: fine grain)."""
+    out, weight, total, cells = np.zeros((size, size), np.float32), 1.0, 0.0, 2
+    while cells <= size:
+        grid = rng.random((cells, cells), dtype=np.float32)
+        out += weight * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+        total, weight, cells = total + weight, weight * roughness, cells * 2
+    out /= total
+    return (out - out.min()) / max(float(out.max() - out.min()), 1e-6)
+
+
+def _pebbles(rng: np.random.Generator, size: int) -> np.ndarray:
+    """``(size, size)`` float grey levels in [0, 1]: overlapping shaded stones (ellipses lit from one side)."""
+    image = np.full((size, size), rng.uniform(0.1, 0.5), np.float32)
+    radius = rng.uniform(0.03, 0.12) * size
+    light = rng.uniform(0, 2 * math.pi)
+    for _ in range(int(3.0 * (size / radius) ** 2)):
+        cx, cy = rng.uniform(-radius, size + radius, 2)
+        axes = (max(1, int(radius * rng.uniform(0.5, 1.3))), max(1, int(radius * rng.uniform(0.4, 1.0))))
+        tone = float(np.clip(rng.normal(0.5, 0.18), 0.05, 0.95))
+        stone = np.zeros((size, size), np.uint8)
+        cv2.ellipse(stone, (int(cx), int(cy)), axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
+        inside = stone > 0
+        if not inside.any():
+            continue
+        v, u = np.nonzero(inside)
+        shade = ((u - cx) * math.cos(light) + (v - cy) * math.sin(light)) / max(axes)
+        image[v, u] = np.clip(tone * (1.0 + 0.35 * shade), 0.0, 1.0)
+    return image
+
+
+def _fibres(rng: np.random.Generator, size: int) -> np.ndarray:
+    """``(size, size)`` float grey levels in [0, 1]: short strokes around one direction (grass, hair, fabric)."""
+    image = np.full((size, size), rng.uniform(0.1, 0.6), np.float32)
+    angle, spread = rng.uniform(0, math.pi), rng.uniform(0.1, 1.2)
+    length = rng.uniform(0.05, 0.3) * size
+    for _ in range(int(rng.uniform(4, 12) * size)):
+        a = angle + rng.normal(0.0, spread)
+        x, y = rng.uniform(0, size, 2)
+        end = (int(x + length * math.cos(a)), int(y + length * math.sin(a)))
+        cv2.line(image, (int(x), int(y)), end, float(rng.uniform(0.0, 1.0)), 1, cv2.LINE_AA)
+    return image
+
+
+def _grain(rng: np.random.Generator, size: int) -> np.ndarray:
+    """``(size, size)`` float levels in [0, 1]: bands bent by noise (wood, marble, strata)."""
+    v, u = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    angle = rng.uniform(0, math.pi)
+    t = u * math.cos(angle) + v * math.sin(angle)
+    bend = _fractal(rng, size, rng.uniform(0.3, 0.6))
+    return 0.5 + 0.5 * np.sin(2 * math.pi * (rng.uniform(3, 15) * t + rng.uniform(0.5, 4.0) * bend))
+
+
+def _textures(n: int, size: int, g: torch.Generator) -> torch.Tensor:
+    """``(n, 3, size, size)`` natural-looking textures: fractal noise, stones, strokes and bent bands, in grey
+    or between two random colours, with fine grain."""
+    rng = np.random.default_rng(int(torch.randint(2**31, (1,), generator=g)))
+    makers = (lambda: _fractal(rng, size, rng.uniform(0.3, 0.9)), lambda: _pebbles(rng, size),
+              lambda: _fibres(rng, size), lambda: _grain(rng, size))
+    out = []
+    for i in range(n):
+        level = makers[i % len(makers)]()
+        if rng.random() < 0.5:  # grey, with its own contrast
+            low, high = sorted(rng.uniform(0.0, 1.0, 2))
+            colours = np.stack([np.full(3, low), np.full(3, high)])
+        else:
+            colours = rng.uniform(0.0, 1.0, (2, 3))
+        image = colours[0] + level[..., None] * (colours[1] - colours[0])
+        image = image + rng.uniform(0.0, 0.06) * (rng.random((size, size, 1)) - 0.5)
+        out.append(torch.from_numpy(np.clip(image, 0.0, 1.0).astype(np.float32)).permute(2, 0, 1))
+    return torch.stack(out)
+
+
+def _greyed(images: torch.Tensor, p: float, g: torch.Generator) -> torch.Tensor:
+    """``images`` ``(N, 3, H, W)`` with each turned grey (its luminance in every channel) with probability ``p``."""
+    grey = torch.rand(len(images), generator=g) < p
+    if grey.any():
+        luma = (0.299 * images[grey, 0] + 0.587 * images[grey, 1] + 0.114 * images[grey, 2])[:, None]
+        images[grey] = luma.expand(-1, 3, -1, -1)
+    return images
+
+
 def _shifted(image: torch.Tensor, dx: int, dy: int) -> torch.Tensor:
     """``(C, H, W)`` moved by whole pixels (``dx`` right, ``dy`` down), zeros where it left the frame."""
     _, H, W = image.shape
@@ -242,7 +326,10 @@ class CameraAugment:
         mask_error_px: largest dilation / erosion of the ``masked`` framing's mask, px at the model size.
         ragged: amplitude in px of the mask edge's ragged noise (0: a clean edge).
         neighbour_p: probability that a neighbouring product is put beside the product.
-        bank: number of background images built per run (a quarter of each kind).
+        bank: number of background images built per run: ``textures`` of them natural-looking textures
+            (:func:`_textures`), the rest a quarter of each of the other kinds.
+        textures: share of the bank that is textures (fractal noise, stones, strokes, bent bands; 0: none).
+        grey_p: probability that a bank image is turned grey (many real backgrounds have no colour).
         seed: seeds the background bank.
     """
 
@@ -252,6 +339,8 @@ class CameraAugment:
     ragged: float = 1.5
     neighbour_p: float = 0.5
     bank: int = 256
+    textures: float = 0.0
+    grey_p: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -264,6 +353,9 @@ class CameraAugment:
                             f"{list(MODES)} with a positive sum")
         if int(self.mask_error_px) < 0 or self.ragged < 0 or not 0 <= self.neighbour_p <= 1 or int(self.bank) < 4:
             raise MatlError("data.augment: mask_error_px and ragged must be >= 0, neighbour_p in [0, 1], bank >= 4")
+        if not 0.0 <= float(self.textures) < 1.0 or not 0.0 <= float(self.grey_p) <= 1.0:
+            raise MatlError(f"data.augment: textures={self.textures}, grey_p={self.grey_p}: use a share of the bank in "
+                            "[0, 1) and a probability in [0, 1] (0: none)")
         self._bank: torch.Tensor | None = None
 
     def setup(self, canon_images: torch.Tensor, canon_masks: torch.Tensor) -> None:
@@ -271,10 +363,15 @@ class CameraAugment:
         ``(P, 1, S, S)`` masks (float {0, 1}), and keep them for neighbouring products."""
         g = torch.Generator().manual_seed(int(self.seed))
         size = canon_images.shape[-1]
-        k = int(self.bank) // 4
+        n_textures = round(int(self.bank) * float(self.textures))
+        rest = int(self.bank) - n_textures
+        k = rest // 4
         kinds = [_smooth_fields(k, size, g), _patterns(k, size, g), _picture_crops(k, size, g),
-                 _shelves(int(self.bank) - 3 * k, size, canon_images, canon_masks, g)]
-        self._bank = torch.cat(kinds).float().contiguous()
+                 _shelves(rest - 3 * k, size, canon_images, canon_masks, g)]
+        if n_textures:
+            kinds.append(_textures(n_textures, size, g))
+        bank = torch.cat(kinds).float()
+        self._bank = (_greyed(bank, float(self.grey_p), g) if self.grey_p > 0 else bank).contiguous()
         self._canon, self._masks = canon_images.float(), canon_masks.float()
         self._device_cache: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 

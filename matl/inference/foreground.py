@@ -18,6 +18,9 @@ the foreground step gives it one, and the query is then used exactly as an RGBA 
   the crop's centre region is kept (and further parts of it an occluder split off), and holes are filled
   only where the probability is high, so an occluder's hole stays out. Its soft probability is
   :meth:`LearnedForeground.probability`. It runs in onnxruntime (torch where onnxruntime is missing).
+  With ``grabcut_iterations`` the mask is GrabCut's started from that probability (what the network rules
+  out is background, the rest probable foreground): the edge follows the crop's colours at full size
+  where the network's 64 px map is blunt.
 * ``retry_insets``: when the answer of a GrabCut-masked query does not verify (its pose does not explain
   the query: ``1 - ZNCC`` above ``verify_max``, :mod:`matl.inference.verify`), GrabCut runs again from
   rectangles inset by these fractions of the crop's side (:meth:`GrabCutForeground.retries`): a product
@@ -219,14 +222,23 @@ class GrabCutForeground:
         labels[inside_d > band] = cv2.GC_FGD
         if not (labels == cv2.GC_BGD).any() or not (labels == cv2.GC_FGD).any():
             return alpha
-        bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
-        cv2.setRNGSeed(int(self.seed))
-        try:
-            cv2.grabCut(bgr, labels, None, np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64),
-                        int(self.iterations), cv2.GC_INIT_WITH_MASK)
-        except cv2.error:
+        if not _grabcut_labels(rgb, labels, int(self.iterations), int(self.seed)):
             return alpha
         return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
+
+
+def _grabcut_labels(rgb: np.ndarray, labels: np.ndarray, iterations: int, seed: int) -> bool:
+    """GrabCut of a float RGB ``(H, W, 3)`` crop in [0, 1] from ``labels`` ``(H, W)`` uint8 (OpenCV's ``GC_*``
+    values), updated in place; False where GrabCut cannot run (a colour model without samples). OpenCV's random
+    generator is seeded with ``seed`` first (k-means of the colour models)."""
+    bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
+    cv2.setRNGSeed(int(seed))
+    try:
+        cv2.grabCut(bgr, labels, None, np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64),
+                    int(iterations), cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return False
+    return True
 
 
 @dataclass
@@ -255,6 +267,16 @@ class LearnedForeground:
             (``black_fraction`` None: every crop goes through the network).
         runtime: ``onnxruntime`` (the network exported in memory and checked against torch) or ``torch``.
         threads: onnxruntime's intra-op threads; None: torch's thread count at each call.
+        grabcut_iterations: > 0: the first mask is GrabCut's, started from the network's probability (pixels
+            below ``background_below`` and the crop's ``band_px`` border band are background, the rest probable
+            foreground) for this many iterations, then cleaned up as the network's own mask (its edge follows the
+            crop's colours where the network's 64 px map is blunt; the occluders and neighbours the network rules
+            out stay out). 0: the thresholded probability alone. The retries stay the network's own masks.
+        background_below: probability below which a pixel is background for GrabCut.
+        band_px: width of the border band seeded as background for GrabCut, px of the crop.
+        max_side: GrabCut runs on a copy of a crop whose longer side is larger, resized to this side (None: at
+            the crop's own size).
+        seed: OpenCV's random seed, set before each GrabCut call.
     """
 
     weights: str | None = None
@@ -271,6 +293,11 @@ class LearnedForeground:
     black_fraction: float | None = 0.5
     runtime: str = "onnxruntime"
     threads: int | None = None
+    grabcut_iterations: int = 0
+    background_below: float = 0.1
+    band_px: int = 2
+    max_side: int | None = 200
+    seed: int = 0
 
     def __post_init__(self) -> None:
         try:
@@ -294,7 +321,11 @@ class LearnedForeground:
                    "a fraction in (0, 1], or null (every crop through the network)"),
                   ("threads", self.threads is None or int(self.threads) >= 1, "an integer >= 1, or null"),
                   ("size", self.size is None or (int(self.size) >= 16 and int(self.size) % 8 == 0),
-                   "a multiple of 8 (>= 16), or null (the network's own)"))
+                   "a multiple of 8 (>= 16), or null (the network's own)"),
+                  ("grabcut_iterations", int(self.grabcut_iterations) >= 0, "an integer >= 0 (0: no GrabCut)"),
+                  ("background_below", 0.0 <= float(self.background_below) < 1.0, "a probability in [0, 1)"),
+                  ("band_px", int(self.band_px) >= 1, "px >= 1"),
+                  ("max_side", self.max_side is None or int(self.max_side) >= 16, "px >= 16, or null"))
         for name, ok, rule in checks:
             if not ok:
                 raise MatlError(f"foreground learned: {name}={getattr(self, name)} is invalid: use {rule}")
@@ -406,8 +437,32 @@ class LearnedForeground:
         that is already segmented (:meth:`segments`) or where nothing is found."""
         if not self.segments(rgb):
             return np.ones(rgb.shape[:2], np.float32)
-        mask = self.mask(self.probability(rgb), float(self.threshold))
+        prob = self.probability(rgb)
+        found = self._grabcut(rgb, prob) if int(self.grabcut_iterations) > 0 else None
+        mask = self.mask(prob, float(self.threshold), found)
         return np.ones(rgb.shape[:2], np.float32) if mask is None else mask
+
+    def _grabcut(self, rgb: np.ndarray, prob: np.ndarray) -> np.ndarray | None:
+        """GrabCut's foreground ``(H, W)`` bool of a float RGB ``(H, W, 3)`` crop started from the network's
+        probability ``(H, W)`` (``background_below``, ``band_px``; at most ``max_side``); None where GrabCut cannot
+        run (nothing left as probable foreground, a colour model without samples)."""
+        h, w = prob.shape
+        factor = 1.0 if self.max_side is None else min(1.0, int(self.max_side) / max(h, w))
+        band = max(1, round(int(self.band_px) * factor))
+        if factor < 1.0:
+            size = (max(1, round(w * factor)), max(1, round(h * factor)))
+            rgb = cv2.resize(np.ascontiguousarray(rgb, dtype=np.float32), size, interpolation=cv2.INTER_AREA)
+            prob = cv2.resize(prob, size, interpolation=cv2.INTER_AREA)
+        labels = np.where(prob < float(self.background_below), cv2.GC_BGD, cv2.GC_PR_FGD).astype(np.uint8)
+        labels[:band], labels[-band:], labels[:, :band], labels[:, -band:] = (cv2.GC_BGD,) * 4
+        if not (labels == cv2.GC_PR_FGD).any() or not _grabcut_labels(rgb, labels, int(self.grabcut_iterations),
+                                                                       int(self.seed)):
+            return None
+        found = ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.uint8)
+        found = cv2.morphologyEx(found, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        if factor < 1.0:
+            found = cv2.resize(found.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
+        return found.astype(bool)
 
     def retries(self, rgb: np.ndarray) -> list[np.ndarray]:
         """The masks ``(H, W)`` float32 in {0, 1} at each of ``retry_thresholds`` of a float RGB ``(H, W, 3)`` crop;
@@ -418,14 +473,14 @@ class LearnedForeground:
         masks = (self.mask(prob, t) for t in self.retry_thresholds)
         return [m for m in masks if m is not None]
 
-    def mask(self, prob: np.ndarray, threshold: float) -> np.ndarray | None:
-        """The product's mask ``(H, W)`` float32 in {0, 1} from a probability map ``(H, W)``: above ``threshold``,
-        the components that overlap the centre region (the largest, and those of at least ``min_part`` of its
-        area), holes filled where small and probable (``hole_area``, ``hole_probability``); None when no component
-        overlaps the centre region."""
+    def mask(self, prob: np.ndarray, threshold: float, found: np.ndarray | None = None) -> np.ndarray | None:
+        """The product's mask ``(H, W)`` float32 in {0, 1} from a probability map ``(H, W)``: above ``threshold``
+        (or the pixels of ``found`` ``(H, W)`` bool, e.g. GrabCut's), the components that overlap the centre region
+        (the largest, and those of at least ``min_part`` of its area), holes filled where small and probable
+        (``hole_area``, ``hole_probability``); None when no component overlaps the centre region."""
         h, w = prob.shape
-        count, labels, stats, _ = cv2.connectedComponentsWithStats((prob > threshold).astype(np.uint8),
-                                                                   connectivity=8)
+        above = prob > threshold if found is None else found
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(above.astype(np.uint8), connectivity=8)
         if count <= 1:
             return None
         y0, x0 = int((1.0 - float(self.centre)) / 2.0 * h), int((1.0 - float(self.centre)) / 2.0 * w)

@@ -79,7 +79,22 @@ def test_same_generator_state_same_images() -> None:
     assert torch.equal(a, b)
 
 
+def test_the_bank_takes_its_share_of_textures_and_greys_what_grey_p_says() -> None:
+    plain, textured = _augment(), _augment(textures=0.5)
+    assert plain._bank.shape == textured._bank.shape == (8, 3, 32, 32)
+    assert torch.equal(plain._bank[:2], _augment()._bank[:2])  # seeded: the same bank every time
+    textures = textured._bank[4:]  # the last half: fractal noise, stones, strokes, bent bands
+    assert textures.min() >= 0.0 and textures.max() <= 1.0
+    assert all(float(t.std()) > 0.01 for t in textures)  # each has a texture, none is flat
+    grey = _augment(textures=0.5, grey_p=1.0)._bank
+    assert torch.equal(grey[:, 0], grey[:, 1]) and torch.equal(grey[:, 1], grey[:, 2])
+    assert not torch.equal(plain._bank[:, 0], plain._bank[:, 1])  # grey_p=0: the colours kept
+
+
 def test_bad_settings_are_one_line_errors() -> None:
+    for bad in ({"textures": 1.0}, {"textures": -0.1}, {"grey_p": 1.5}):
+        with pytest.raises(MatlError, match=r"textures=.*grey_p="):
+            CameraAugment(**bad)
     with pytest.raises(MatlError, match="modes"):
         CameraAugment(modes={"blurry": 1.0})
     with pytest.raises(MatlError, match="neighbour_p"):

@@ -297,6 +297,26 @@ def test_learned_mask_keeps_the_centred_product_and_fills_only_probable_holes() 
     assert FixedProbability(prob, black_fraction=None)(black).min() == 0.0
 
 
+def test_grabcut_from_the_learned_probability_follows_the_edge_and_keeps_what_it_rules_out_out() -> None:
+    image, truth = clutter_scene()
+    blunt = cv2.dilate(truth, np.ones((9, 9), np.uint8))  # the product, its edge 4 px too wide (a 64 px map's blur)
+    prob = np.where(blunt > 0, 0.8, 0.3).astype(np.float32)
+    alone, snapped = FixedProbability(prob), FixedProbability(prob, grabcut_iterations=1)
+    assert iou(snapped(image), truth) > 0.9 > iou(alone(image), truth)
+    occluder = np.zeros_like(truth)
+    occluder[40:60, 30:60] = 1.0                 # a grey bar across the product that the network rules out
+    covered = np.where(occluder[..., None] > 0, np.float32(0.7), image).astype(np.float32)
+    ruled_out = np.where(occluder > 0, 0.02, prob).astype(np.float32)
+    mask = FixedProbability(ruled_out, grabcut_iterations=1)(covered)
+    assert mask[occluder > 0].max() == 0.0 and iou(mask, truth * (1 - occluder)) > 0.9
+    assert np.array_equal(mask, FixedProbability(ruled_out, grabcut_iterations=1)(covered))  # seeded
+    large = cv2.resize(image, (288, 288), interpolation=cv2.INTER_LINEAR)  # segmented at max_side, resized back
+    big = FixedProbability(cv2.resize(prob, (288, 288)), grabcut_iterations=1, max_side=100)(large)
+    assert big.shape == (288, 288) and iou(big, cv2.resize(truth, (288, 288))) > 0.85
+    nothing = FixedProbability(np.zeros_like(prob), grabcut_iterations=1)(image)  # everything ruled out
+    assert nothing.min() == 1.0  # nothing found: every pixel kept, as without GrabCut
+
+
 def test_learned_alpha_band_and_options(tmp_path: Path) -> None:
     prob = np.zeros((40, 40), np.float32)
     prob[10:30, 10:30] = 0.9
@@ -307,7 +327,8 @@ def test_learned_alpha_band_and_options(tmp_path: Path) -> None:
     assert refined[10:30, 10:30].min() == 1.0 and refined.sum() == 400
     assert FixedProbability(prob).refine_alpha(image, grown) is grown  # alpha_band_px=0: as given
     for bad in ({"threshold": 1.0}, {"retry_thresholds": [0.0]}, {"retry_thresholds": ["low"]}, {"centre": 0.0},
-                {"alpha_band_px": -1}, {"size": 20}, {"runtime": "tensorrt"}, {"threads": 0}):
+                {"alpha_band_px": -1}, {"size": 20}, {"runtime": "tensorrt"}, {"threads": 0},
+                {"grabcut_iterations": -1}, {"background_below": 1.0}, {"band_px": 0}, {"max_side": 8}):
         with pytest.raises(MatlError, match="foreground learned"):
             tiny_learned(**bad)
     with pytest.raises(MatlError, match="not found"):
