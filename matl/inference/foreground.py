@@ -211,20 +211,26 @@ class GrabCutForeground:
             ``(H, W)`` float32: ``alpha`` itself with ``alpha_band_px`` 0, or when the alpha has no pixel
             farther than the band inside or outside it; else in {0, 1}.
         """
-        band = int(self.alpha_band_px)
-        inside = (alpha > 0.5).astype(np.uint8)
-        if band == 0:
-            return alpha
-        outside_d = cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5)
-        inside_d = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
-        labels = np.where(inside > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
-        labels[outside_d > band] = cv2.GC_BGD
-        labels[inside_d > band] = cv2.GC_FGD
-        if not (labels == cv2.GC_BGD).any() or not (labels == cv2.GC_FGD).any():
-            return alpha
-        if not _grabcut_labels(rgb, labels, int(self.iterations), int(self.seed)):
-            return alpha
-        return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
+        return _grabcut_alpha(rgb, alpha, int(self.alpha_band_px), int(self.iterations), int(self.seed))
+
+
+def _grabcut_alpha(rgb: np.ndarray, alpha: np.ndarray, band: int, iterations: int, seed: int) -> np.ndarray:
+    """An alpha ``(H, W)`` in [0, 1] of the float RGB ``(H, W, 3)`` pixels under it with its edge decided by GrabCut
+    (``iterations``, ``seed``) within ``band`` px of it: ``(H, W)`` float32 in {0, 1}, or ``alpha`` itself with
+    ``band`` 0, when the alpha has no pixel farther than the band inside or outside it, or GrabCut cannot run."""
+    inside = (alpha > 0.5).astype(np.uint8)
+    if band == 0:
+        return alpha
+    outside_d = cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5)
+    inside_d = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
+    labels = np.where(inside > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+    labels[outside_d > band] = cv2.GC_BGD
+    labels[inside_d > band] = cv2.GC_FGD
+    if not (labels == cv2.GC_BGD).any() or not (labels == cv2.GC_FGD).any():
+        return alpha
+    if not _grabcut_labels(rgb, labels, iterations, seed):
+        return alpha
+    return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
 
 
 def _grabcut_labels(rgb: np.ndarray, labels: np.ndarray, iterations: int, seed: int) -> bool:
@@ -260,7 +266,7 @@ class LearnedForeground:
             this fraction of the mask's area ...
         hole_probability: ... and its mean probability is at least this (an occluder's hole is near 0: kept out).
         alpha_band_px: an RGBA query's alpha: the pixels within this many px of its edge are decided by the
-            network's mask (0: the alpha as given).
+            network's mask, or with ``grabcut_iterations`` by GrabCut (0: the alpha as given).
         passes: pose passes after the first answer (as :class:`GrabCutForeground`'s).
         black_level, black_fraction: a crop whose border band (2 px) has at least ``black_fraction`` of its pixels
             at most ``black_level`` already has its mask (background 0, the training convention): used as given
@@ -277,6 +283,13 @@ class LearnedForeground:
         max_side: GrabCut runs on a copy of a crop whose longer side is larger, resized to this side (None: at
             the crop's own size).
         seed: OpenCV's random seed, set before each GrabCut call.
+        min_kept: GrabCut's mask is taken when its area is at least this share of the network's own mask's (a
+            smaller one has taken the product's colours for the background's); else, or where GrabCut finds
+            nothing centred, the network's own mask is.
+        retry_insets: fractions of the crop's side (each in [0, 0.5)): more retries, each ``foreground=grabcut``'s
+            mask (:class:`GrabCutForeground` with its defaults, no network) from the rectangle inset by that
+            fraction (at least ``band_px``; 0: the border band alone); where the network has taken the wrong thing
+            for the product, a mask that does not lean on it (empty: none).
     """
 
     weights: str | None = None
@@ -287,19 +300,28 @@ class LearnedForeground:
     min_part: float = 0.2
     hole_area: float = 0.05
     hole_probability: float = 0.2
-    alpha_band_px: int = 0
+    alpha_band_px: int = 4
     passes: int = 0
     black_level: float = 0.0
     black_fraction: float | None = 0.5
     runtime: str = "onnxruntime"
     threads: int | None = None
-    grabcut_iterations: int = 0
-    background_below: float = 0.1
+    grabcut_iterations: int = 1
+    background_below: float = 0.03
     band_px: int = 2
     max_side: int | None = 200
     seed: int = 0
+    min_kept: float = 0.3
+    retry_insets: tuple[float, ...] = (0.0, 0.08, 0.12)
 
     def __post_init__(self) -> None:
+        try:
+            self.retry_insets = tuple(float(f) for f in self.retry_insets)
+        except (TypeError, ValueError):
+            self.retry_insets = (float("nan"),)  # reported below
+        if not all(0.0 <= f < 0.5 for f in self.retry_insets):
+            raise MatlError(f"foreground learned: retry_insets={list(self.retry_insets)}: use fractions of the crop's "
+                            "side in [0, 0.5), e.g. [0.0, 0.08], or [] for no GrabCut retries")
         try:
             self.retry_thresholds = tuple(float(t) for t in self.retry_thresholds)
         except (TypeError, ValueError):
@@ -325,7 +347,8 @@ class LearnedForeground:
                   ("grabcut_iterations", int(self.grabcut_iterations) >= 0, "an integer >= 0 (0: no GrabCut)"),
                   ("background_below", 0.0 <= float(self.background_below) < 1.0, "a probability in [0, 1)"),
                   ("band_px", int(self.band_px) >= 1, "px >= 1"),
-                  ("max_side", self.max_side is None or int(self.max_side) >= 16, "px >= 16, or null"))
+                  ("max_side", self.max_side is None or int(self.max_side) >= 16, "px >= 16, or null"),
+                  ("min_kept", 0.0 <= float(self.min_kept) <= 1.0, "a share in [0, 1] (0: GrabCut's mask always)"))
         for name, ok, rule in checks:
             if not ok:
                 raise MatlError(f"foreground learned: {name}={getattr(self, name)} is invalid: use {rule}")
@@ -337,6 +360,7 @@ class LearnedForeground:
         else:
             net = load_visibility_net(self.weights, self.size)  # a missing or wrong file: one line, now
         self._net = net.eval()
+        self._rectangle = GrabCutForeground(inset_px=int(self.band_px), max_side=self.max_side, seed=int(self.seed))
         self._sessions: dict[int, Any] = {}
         self._graph: bytes | None = None
         self.failure: str | None = None  # why onnxruntime is not used, when it is not
@@ -353,7 +377,7 @@ class LearnedForeground:
     @property
     def retrying(self) -> bool:
         """Whether a query whose answer does not verify is masked again (:meth:`retries`)."""
-        return bool(self.retry_thresholds)
+        return bool(self.retry_thresholds) or bool(self.retry_insets)
 
     @property
     def working_size(self) -> int:
@@ -438,8 +462,12 @@ class LearnedForeground:
         if not self.segments(rgb):
             return np.ones(rgb.shape[:2], np.float32)
         prob = self.probability(rgb)
-        found = self._grabcut(rgb, prob) if int(self.grabcut_iterations) > 0 else None
-        mask = self.mask(prob, float(self.threshold), found)
+        mask = self.mask(prob, float(self.threshold))
+        if int(self.grabcut_iterations) > 0 and mask is not None:
+            found = self._grabcut(rgb, prob)
+            snapped = None if found is None else self.mask(prob, float(self.threshold), found)
+            if snapped is not None and snapped.sum() >= float(self.min_kept) * mask.sum():
+                mask = snapped
         return np.ones(rgb.shape[:2], np.float32) if mask is None else mask
 
     def _grabcut(self, rgb: np.ndarray, prob: np.ndarray) -> np.ndarray | None:
@@ -465,12 +493,16 @@ class LearnedForeground:
         return found.astype(bool)
 
     def retries(self, rgb: np.ndarray) -> list[np.ndarray]:
-        """The masks ``(H, W)`` float32 in {0, 1} at each of ``retry_thresholds`` of a float RGB ``(H, W, 3)`` crop;
-        none for a crop used as given, and none where nothing is found."""
-        if not self.retry_thresholds or not self.segments(rgb):
+        """The masks ``(H, W)`` float32 in {0, 1} at each of ``retry_thresholds`` of a float RGB ``(H, W, 3)`` crop,
+        then GrabCut's from each of ``retry_insets``; none for a crop used as given, none where nothing is found."""
+        if not self.retrying or not self.segments(rgb):
             return []
-        prob = self.probability(rgb)
-        masks = (self.mask(prob, t) for t in self.retry_thresholds)
+        masks: list[np.ndarray | None] = []
+        if self.retry_thresholds:
+            prob = self.probability(rgb)
+            masks += [self.mask(prob, t) for t in self.retry_thresholds]
+        side = min(rgb.shape[:2])
+        masks += [self._rectangle.segment(rgb, max(int(self.band_px), round(f * side))) for f in self.retry_insets]
         return [m for m in masks if m is not None]
 
     def mask(self, prob: np.ndarray, threshold: float, found: np.ndarray | None = None) -> np.ndarray | None:
@@ -518,11 +550,14 @@ class LearnedForeground:
 
     def refine_alpha(self, rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         """An RGBA query's alpha ``(H, W)`` with the pixels within ``alpha_band_px`` of its edge decided by the
-        network's mask (``rgb``: ``(H, W, 3)`` float in [0, 1], the pixels under the alpha); ``alpha`` itself with
-        ``alpha_band_px`` 0."""
+        network's mask, or with ``grabcut_iterations`` by GrabCut as :meth:`GrabCutForeground.refine_alpha` does
+        (``rgb``: ``(H, W, 3)`` float in [0, 1], the pixels under the alpha); ``alpha`` itself with ``alpha_band_px``
+        0."""
         band = int(self.alpha_band_px)
         if band == 0:
             return alpha
+        if int(self.grabcut_iterations) > 0:
+            return _grabcut_alpha(rgb, alpha, band, int(self.grabcut_iterations), int(self.seed))
         inside = (alpha > 0.5).astype(np.uint8)
         near = (cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5) <= band) & \
             (cv2.distanceTransform(inside, cv2.DIST_L2, 5) <= band)

@@ -102,7 +102,7 @@ class RecognizerOptions:
     gallery_fill: float = 1.0
     query_fill: float = 1.0
     batch_size: int = 64
-    foreground: str | ForegroundStep | None = "grabcut"
+    foreground: str | ForegroundStep | None = "learned"
 
     def __post_init__(self) -> None:
         if self.quantize not in ("none", "int8"):

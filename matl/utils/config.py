@@ -153,7 +153,8 @@ RULES: tuple[Rule, ...] = (
     Rule("query_fill", fraction, "a fraction in (0, 1]"),
     Rule("timing_queries", int_at_least(0), "an integer >= 0"),
     Rule("foreground.retry_insets", lambda v: isinstance(v, (list, tuple, ListConfig)) and all(
-        is_number(f) and 0 < f < 0.5 for f in v), "a list of fractions of the crop's side in (0, 0.5), or []"),
+        is_number(f) and 0 <= f < 0.5 for f in v),
+         "a list of fractions of the crop's side in [0, 0.5) (foreground=grabcut: above 0), or []"),
     Rule("image_size", int_at_least(16), "an integer >= 16, or null (the checkpoint's size)"),
 )
 

@@ -60,7 +60,7 @@ def test_method_commands_list_predicts_options(tmp_path: Path) -> None:
                "uncover=0.7"
     refined = MethodRun.of("matl_refine", cfg, shared, Path("/bench/clean/p.jsonl"))
     assert refined.command == (f"python -m matl.predict {files} threshold=null {open_set} refine=true "
-                               "foreground=grabcut runtime=onnxruntime out=/bench/clean/p.jsonl")
+                               "foreground=learned runtime=onnxruntime out=/bench/clean/p.jsonl")
     plain = MethodRun.of("matl", _cfg(tmp_path, "foreground=none", "runtime=torch"), shared, Path("/o.jsonl"))
     assert plain.command.endswith(f"threshold=null {open_set} refine=false foreground=none runtime=torch out=/o.jsonl")
     for baseline in ("sift_ecc", "xfeat_lighterglue"):  # a closed set, whatever the benchmark's threshold
@@ -74,7 +74,7 @@ def test_method_commands_list_predicts_options(tmp_path: Path) -> None:
         "python -m matl.score predictions=/b/p.jsonl truth=/b/truth.jsonl ckpt=/m.ckpt gallery_fill=1.0 "
         "query_fill=0.6 out=/b/s")
     assert method_overrides("sift") == []  # called as a function: no command-line overrides
-    assert foreground_choice(cfg) == "grabcut"  # the default, passed on to predict
+    assert foreground_choice(cfg) == "learned"  # the default, passed on to predict
     for name in group_options("foreground"):  # each option of the group, named back from its node
         assert foreground_choice(_cfg(tmp_path, f"foreground={name}")) == name
 

@@ -239,11 +239,12 @@ def tiny_learned(**settings) -> LearnedForeground:
 
 
 class FixedProbability(LearnedForeground):
-    """LearnedForeground whose probability map is given (the post-processing under test)."""
+    """LearnedForeground whose probability map is given (the post-processing under test; GrabCut, from the map or
+    from rectangles, only where the settings ask for it)."""
 
     def __init__(self, prob: np.ndarray, **settings) -> None:
         self.__dict__["_given"] = VisibilityNet(size=16, channels=(2, 2, 2))
-        super().__init__(**settings)
+        super().__init__(**{"grabcut_iterations": 0, "retry_insets": (), **settings})
         self.prob = prob
 
     def probability(self, rgb: np.ndarray) -> np.ndarray:
@@ -315,6 +316,23 @@ def test_grabcut_from_the_learned_probability_follows_the_edge_and_keeps_what_it
     assert big.shape == (288, 288) and iou(big, cv2.resize(truth, (288, 288))) > 0.85
     nothing = FixedProbability(np.zeros_like(prob), grabcut_iterations=1)(image)  # everything ruled out
     assert nothing.min() == 1.0  # nothing found: every pixel kept, as without GrabCut
+    eaten = FixedProbability(prob, grabcut_iterations=1, min_kept=1.0)  # GrabCut's mask smaller than the network's:
+    assert np.array_equal(eaten(image), alone(image))                   # the network's own mask is kept
+
+
+def test_learned_retries_add_grabcuts_masks_from_rectangles() -> None:
+    image, truth = clutter_scene()
+    prob = np.where(truth > 0, 0.8, 0.1).astype(np.float32)
+    step = FixedProbability(prob, retry_thresholds=(0.3,), retry_insets=(0.0, 0.1))
+    network, band, wider = step.retries(image)
+    assert np.array_equal(network, step.mask(prob, 0.3))
+    grabcut = GrabCutForeground()  # foreground=grabcut's masks, from the border band and from 10 % of the side in
+    assert np.array_equal(band, grabcut(image)) and np.array_equal(wider, grabcut.segment(image, round(0.1 * 96)))
+    assert FixedProbability(prob, retry_thresholds=(), retry_insets=(0.0,)).retrying
+    assert not FixedProbability(prob, retry_thresholds=(), retry_insets=()).retrying
+    for bad in ([0.5], [-0.1], ["wide"]):
+        with pytest.raises(MatlError, match="retry_insets"):
+            FixedProbability(prob, retry_insets=bad)
 
 
 def test_learned_alpha_band_and_options(tmp_path: Path) -> None:
@@ -325,10 +343,11 @@ def test_learned_alpha_band_and_options(tmp_path: Path) -> None:
     grown[7:33, 7:33] = 1.0                      # 3 px too wide
     refined = FixedProbability(prob, alpha_band_px=4).refine_alpha(image, grown)
     assert refined[10:30, 10:30].min() == 1.0 and refined.sum() == 400
-    assert FixedProbability(prob).refine_alpha(image, grown) is grown  # alpha_band_px=0: as given
+    assert FixedProbability(prob, alpha_band_px=0).refine_alpha(image, grown) is grown  # as given
     for bad in ({"threshold": 1.0}, {"retry_thresholds": [0.0]}, {"retry_thresholds": ["low"]}, {"centre": 0.0},
                 {"alpha_band_px": -1}, {"size": 20}, {"runtime": "tensorrt"}, {"threads": 0},
-                {"grabcut_iterations": -1}, {"background_below": 1.0}, {"band_px": 0}, {"max_side": 8}):
+                {"grabcut_iterations": -1}, {"background_below": 1.0}, {"band_px": 0}, {"max_side": 8},
+                {"min_kept": 1.5}):
         with pytest.raises(MatlError, match="foreground learned"):
             tiny_learned(**bad)
     with pytest.raises(MatlError, match="not found"):

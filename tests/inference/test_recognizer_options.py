@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from matl import Recognizer
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.foreground import GrabCutForeground
+from matl.inference.foreground import LearnedForeground
 from matl.inference.recognizer_options import CONFIG_OPTIONS, RecognizerOptions, config_options, option_default
 from matl.models.search import ExactSearch, FaissSearch
 from matl.utils.errors import MatlError
@@ -26,7 +26,7 @@ SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_opt
 def test_the_defaults_are_resolved_once() -> None:
     options = RecognizerOptions()
     assert options.refine is None and options.search is ExactSearch and options.threshold == "auto"
-    assert isinstance(options.foreground, GrabCutForeground) and options.device == "cpu"
+    assert isinstance(options.foreground, LearnedForeground) and options.device == "cpu"
     assert options.verify_top_k == 8 and options.verify_statistic == "patches" and options.batch_size == 64
     refined = RecognizerOptions(refine=True, search="faiss", foreground="none", verify_max=1, gallery_fill=0.6)
     assert isinstance(refined.refine, FastRefiner) and refined.search is FaissSearch and refined.foreground is None
