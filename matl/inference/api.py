@@ -85,7 +85,7 @@ from matl.inference.calibration import (
 from matl.inference.enrolment import GALLERY_FORMAT, READABLE_GALLERY_FORMATS, Enrolment, _Plane
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.flow_pose import FlowPose, FlowPoses
-from matl.inference.foreground import ForegroundStep, mask_query
+from matl.inference.foreground import ForegroundStep, LearnedForeground, mask_query
 from matl.inference.gallery import build_gallery
 from matl.inference.images import (
     FLOAT_SLACK,
@@ -321,7 +321,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
 
     def prepare(self) -> Recognizer:
         """Make the query networks ready, whatever the gallery: the onnxruntime path exported and its sessions
-        opened (``runtime=onnxruntime``), the compiled search and refinement kernels loaded (numba's cache).
+        opened (``runtime=onnxruntime``; the learned foreground's too), the compiled search and refinement kernels
+        loaded (numba's cache).
         Part of loading a model (:meth:`from_checkpoint`, :meth:`pretrained`), so that the first query after
         :meth:`enrol` or :meth:`load` pays only for its gallery (docs/speed.md); otherwise done at that query."""
         with self._lock:
@@ -338,6 +339,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 from matl.inference import fast_refine_kernels
 
                 fast_refine_kernels.warm_up()
+            if isinstance(self.foreground, LearnedForeground):
+                self.foreground.prepare()
         return self
 
     @classmethod

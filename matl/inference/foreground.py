@@ -415,6 +415,11 @@ class LearnedForeground:
             raise RuntimeError(f"the visibility network in onnxruntime differs from torch by {diff:.3g}")
         return graph
 
+    def prepare(self) -> str:
+        """Export the network and open its onnxruntime session at the current thread count now rather than at the
+        first crop (about a second); returns :attr:`runtime_in_use`."""
+        return self.runtime_in_use
+
     @property
     def runtime_in_use(self) -> str:
         """What runs the network: ``onnxruntime`` or ``torch`` (asked for, or the fallback)."""

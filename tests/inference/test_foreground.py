@@ -255,6 +255,7 @@ def test_learned_probability_runs_in_onnxruntime_like_torch() -> None:
     pytest.importorskip("onnxruntime")
     image, _ = clutter_scene()
     onnx, plain = tiny_learned(threads=1), tiny_learned(runtime="torch")
+    assert onnx.prepare() == "onnxruntime" and 1 in onnx._sessions  # the session opened before the first crop
     p = onnx.probability(image)
     assert p.shape == image.shape[:2] and p.dtype == np.float32 and p.min() >= 0.0 and p.max() <= 1.0
     assert onnx.runtime_in_use == "onnxruntime" and plain.runtime_in_use == "torch" and onnx.failure is None
@@ -366,6 +367,8 @@ def test_recognizer_with_the_learned_foreground(tmp_path: Path) -> None:
     scene, _ = cluttered_query(queries, "green_can")
     rec = stub_recognizer(threshold=None, foreground="learned").enrol(gallery)
     assert isinstance(rec.foreground, LearnedForeground)
+    pytest.importorskip("onnxruntime")
+    assert not rec.foreground._sessions and rec.prepare().foreground._sessions  # ready before the first crop
     match = rec.predict(scene)
     assert match.object in rec.objects and match.H.shape == (3, 3)
     options = rec.options()["foreground"]
