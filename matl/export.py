@@ -9,6 +9,10 @@ The inference path without matl. Writes self-contained networks and a descriptio
   model): ``(images, anchors, stn_query_H_anchor, warped) -> query_H_anchor``, run after the search
   against the anchor found (:class:`matl.inference.export.AlignGraph`); its ``query_H_anchor`` is the
   pose ``matl.predict`` and ``matl.Recognizer`` give without refinement.
+* ``foreground_net.<ext>`` (``foreground_net=shipped``, the default; ``null``: none): ``foreground=learned``'s
+  visibility network, ``(B, 3, F, F)`` RGB crops without a mask at its working size ``F`` -> logits ``(B, 1, F,
+  F)``, the probability that a pixel shows the visible print of the crop's target product (the mask a camera's
+  crop needs before the query network).
 * ``export.json``: image size, N, embedding size, the checkpoint's sha256, the largest difference
   between exported and eager outputs (per network and per output) measured right after export, and
   what a user of the files alone needs: input layout, outputs, recognition, pose, the anchors'

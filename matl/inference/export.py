@@ -32,8 +32,10 @@ QUERY_OUTPUTS = ("embedding", "query_H_anchor", "degenerate", "warped")
 #: the alignment stage's network (a checkpoint with ``model.align``): its inputs, in order, and its output
 ALIGN_INPUTS = ("images", "anchors", "stn_query_H_anchor", "warped")
 ALIGN_OUTPUTS = ("query_H_anchor",)
+#: the visibility network's output (``foreground_net``: the foreground of RGB crops without a mask)
+FOREGROUND_OUTPUTS = ("logits",)
 #: what an export writes into ``out`` (glob patterns: an earlier export's files are replaced only when asked)
-EXPORT_FILES = ("export.json", "gallery_net.*", "query_net.*", "align_net.*")
+EXPORT_FILES = ("export.json", "gallery_net.*", "query_net.*", "align_net.*", "foreground_net.*")
 #: 16 is the first opset with GridSample (the STN's warp); 17 is read by every onnxruntime >= 1.12
 ONNX_OPSET = 17
 ONNX_INSTALL = 'pip install "onnx>=1.15" "onnxruntime>=1.17" (dependencies of matl)'
@@ -290,10 +292,12 @@ def _fixed_anchor_matrices(num_anchors: int, image_size: int) -> list[list[list[
 
 
 def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pose: bool,
-                     max_condition: float | None = None, has_align: bool = False) -> dict[str, Any]:
+                     max_condition: float | None = None, has_align: bool = False,
+                     foreground_size: int | None = None) -> dict[str, Any]:
     """What ``export.json`` tells a user of the exported files alone (C++, ROS): how to load them, what
     goes in, what comes out, and how recognition, pose and original-image pixels follow (``has_align``:
-    the checkpoint's alignment stage is ``align_net``, between the search and the pose)."""
+    the checkpoint's alignment stage is ``align_net``, between the search and the pose; ``foreground_size``: the
+    working size of ``foreground_net``, the visibility network, or None without one)."""
     S = int(image_size)
     notes: dict[str, Any] = {
         "inputs": f"float32 (B, 3, S, S) RGB in [0, 1] (row-major, channels first), S = image_size = {S}; "
@@ -345,11 +349,23 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
                                   "warping the gallery file by it (cv2.warpPerspective) lands on the query file")
     else:
         notes["query_net"] = "(B, 3, S, S) -> embedding (B, D) (no STN: no pose)"
+    if foreground_size is not None:
+        F = int(foreground_size)
+        notes["foreground_net"] = (f"(B, 3, {F}, {F}) -> logits (B, 1, {F}, {F}): an RGB crop without a mask (a "
+                                   f"detector's box, float32 in [0, 1]) resized to {F} x {F} (area averaging, the "
+                                   "aspect not kept); sigmoid(logits) is the probability that a pixel shows the "
+                                   "visible print of the crop's target product (background, neighbours and occluders "
+                                   "out). "
+                                   "Resize the logits back to the crop (bilinear), keep the pixels above 0.5 in the "
+                                   "component overlapping the crop's centre, and multiply the crop by that mask: the "
+                                   "query the other networks take (background 0). matl's foreground=learned adds "
+                                   "GrabCut started from this probability (docs/usage.md)")
     if fmt == "onnx":
         notes["runtime"] = (f"ONNX opset {ONNX_OPSET}, input 'images', outputs "
                             f"{list(QUERY_OUTPUTS if has_pose else GALLERY_OUTPUTS)} (gallery_net: ['embedding']"
                             + (f"; align_net: inputs {list(ALIGN_INPUTS)}, output {list(ALIGN_OUTPUTS)}" if has_align
                                else "")
+                            + (f"; foreground_net: {list(FOREGROUND_OUTPUTS)}" if foreground_size is not None else "")
                             + "), batch axis dynamic; onnxruntime (C++: Ort::Session) with the CPUExecutionProvider "
                             "is what the export is checked with; scripts/onnx_predict_example.py is the whole query "
                             "path with numpy, OpenCV and onnxruntime alone")
@@ -360,9 +376,10 @@ def deployment_notes(fmt: str, image_size: int, num_anchors: int | None, has_pos
 def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: int, out_dir: str | Path,
                      fmt: str = "torchscript", tolerance: float = 5e-4, check_batches: tuple[int, ...] = (1, 3),
                      meta: dict[str, Any] | None = None, seed: int = 0,
-                     num_anchors: int | None = None, align: nn.Module | None = None) -> dict[str, Any]:
-    """Export the gallery and query networks (and the alignment stage), check them against the eager ones,
-    write ``export.json``.
+                     num_anchors: int | None = None, align: nn.Module | None = None,
+                     foreground: nn.Module | None = None) -> dict[str, Any]:
+    """Export the gallery and query networks (and the alignment stage, the visibility network), check them against
+    the eager ones, write ``export.json``.
 
     The files are written to a temporary folder inside ``out_dir`` and moved into it only once every check
     has passed: a failed export leaves ``out_dir`` as it was.
@@ -384,6 +401,8 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
         num_anchors: ``N`` of the fixed anchors, for their matrices in ``export.json`` (None: left out).
         align: the checkpoint's alignment stage (``model.align``) or None: exported as ``align_net``
             (:class:`AlignGraph`), run after the search on the query network's pose against the anchor found.
+        foreground: a visibility network (:class:`matl.models.visibility.VisibilityNet`, ``foreground=learned``'s)
+            or None: exported as ``foreground_net``, ``(B, 3, F, F)`` crops at its working size ``F`` -> logits.
     Returns:
         ``export.json``'s content; ``max_abs_diff`` per network, ``max_abs_diff_by_output`` per output.
     Raises:
@@ -405,8 +424,11 @@ def export_inference(feature_net: nn.Module, stn: nn.Module | None, image_size: 
     try:
         info = _export_checked(feature_net, stn, align if stn is not None else None, image_size, staging, fmt,
                                tolerance, check_batches, seed, QueryGraph)
+        if foreground is not None:
+            info = _with_foreground(info, foreground, staging, fmt, tolerance, check_batches, seed)
         info.update(deployment_notes(fmt, image_size, num_anchors, stn is not None,
-                                     getattr(stn, "max_condition", None), "align_net" in info["files"]))
+                                     getattr(stn, "max_condition", None), "align_net" in info["files"],
+                                     None if foreground is None else int(foreground.size)))
         info.update(meta or {})
         write_json(staging / "export.json", info)
         for name in [*info["files"].values(), "export.json"]:  # each a rename within out: complete files only
@@ -479,6 +501,30 @@ def _export_checked(feature_net: nn.Module, stn: nn.Module | None, align: nn.Mod
     return info
 
 
+def _with_foreground(info: dict[str, Any], foreground: nn.Module, folder: Path, fmt: str, tolerance: float,
+                     check_batches: tuple[int, ...], seed: int) -> dict[str, Any]:
+    """``info`` with the visibility network ``foreground`` written into ``folder`` as ``foreground_net`` and checked
+    against the eager one (logits, ``tolerance`` absolute, as every output in [-1, 1] is, else relative)."""
+    foreground = foreground.eval().cpu()
+    size = int(foreground.size)
+    g = torch.Generator().manual_seed(seed + 1)
+    path = folder / f"foreground_net{SUFFIXES[fmt]}"
+    exported = _trace(foreground, torch.rand(2, 3, size, size, generator=g), fmt, path, FOREGROUND_OUTPUTS)
+    worst = 0.0
+    with torch.no_grad():
+        for batch in check_batches:
+            x = torch.rand(batch, 3, size, size, generator=g)
+            worst = max(worst, _max_diffs(foreground(x), exported(x), FOREGROUND_OUTPUTS)["logits"])
+    if not worst <= tolerance:
+        raise MatlError(f"exported foreground_net output logits differs from the eager network by {worst:.3g} > "
+                        f"tolerance {tolerance:g}")
+    info = dict(info)
+    info["files"] = {**info["files"], "foreground_net": path.name}
+    info["max_abs_diff"] = {**info["max_abs_diff"], "foreground_net": worst}
+    info["max_abs_diff_by_output"] = {**info["max_abs_diff_by_output"], "foreground_net": {"logits": worst}}
+    return info
+
+
 def export(cfg: DictConfig) -> dict[str, Any]:
     """``matl.export``'s work for a composed ``conf/export.yaml``: ``ckpt=`` (a path, ``pretrained`` or
     ``pretrained_fast``), ``format`` and ``out`` checked before anything is traced."""
@@ -503,7 +549,14 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     if align is not None:
         meta["alignment_stage"] = ("exported as align_net: run it after the search on the query network's "
                                    "query_H_anchor against the anchor found; its query_H_anchor is the pose")
+    foreground = None
+    if cfg.get("foreground_net") not in (None, False, "none"):
+        from matl.models.visibility import load_visibility_net
+
+        weights = cfg.foreground_net
+        foreground = load_visibility_net(None if weights in (True, "shipped") else str(weights))
+        meta["foreground_weights"] = "shipped" if weights in (True, "shipped") else str(weights)
     info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta,
-                            num_anchors=num_anchors, align=align)
+                            num_anchors=num_anchors, align=align, foreground=foreground)
     log.info("export: %s", json.dumps(info))
     return info

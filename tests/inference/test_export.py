@@ -163,9 +163,23 @@ def test_onnx_from_a_checkpoint_describes_the_files(tmp_path: Path, cache_dir: P
     assert anchors.shape == (4, 3, 3) and torch.equal(anchors[0], torch.eye(3, dtype=torch.float64))
     quarter = torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, S - 1.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     assert torch.allclose(anchors[1], quarter, atol=1e-12)
-    for key in ("inputs", "to_model_frame", "model_H_file", "recognition", "pose", "pose_in_files", "runtime"):
+    for key in ("inputs", "to_model_frame", "model_H_file", "recognition", "pose", "pose_in_files", "runtime",
+                "foreground_net"):
         assert saved[key], key
     assert "query_H_anchor @ anchor_k_H_canon" in saved["pose"] and "'images'" in saved["runtime"]
+    # the shipped visibility network (foreground=learned) beside them: the same logits in onnxruntime
+    from matl.inference.export import OnnxNetwork
+    from matl.models.visibility import load_visibility_net
+
+    assert saved["files"]["foreground_net"] == "foreground_net.onnx" and saved["foreground_weights"] == "shipped"
+    net, exported = load_visibility_net(), OnnxNetwork(out / "foreground_net.onnx")
+    crops = torch.rand(3, 3, net.size, net.size, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert (exported(crops) - net(crops)).abs().max() < 1e-4
+    assert saved["max_abs_diff"]["foreground_net"] <= 1e-4 and "sigmoid(logits)" in saved["foreground_net"]
+    without = export(compose_config("export", [f"ckpt={ckpt}", f"out={tmp_path / 'plain'}", "format=onnx",
+                                               "foreground_net=null"], tmp_path / "run2"))
+    assert "foreground_net" not in without["files"] and not (tmp_path / "plain" / "foreground_net.onnx").exists()
 
 
 def test_onnx_without_onnxruntime_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -242,8 +256,8 @@ def test_an_export_replaces_an_earlier_one_only_when_asked_and_a_failed_one_leav
     out = tmp_path / "exported"
     export(compose_config("export", [f"ckpt={ckpt}", f"out={out}"], tmp_path / "run"))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    with pytest.raises(MatlError, match=r"already holds export\.json, gallery_net\.pt, query_net\.pt: pass "
-                                        r"overwrite=true to replace them"):
+    with pytest.raises(MatlError, match=r"already holds export\.json, foreground_net\.pt, gallery_net\.pt, "
+                                        r"query_net\.pt: pass overwrite=true to replace them"):
         export(compose_config("export", [f"ckpt={ckpt}", f"out={out}"], tmp_path / "run"))
     monkeypatch.setattr(export_module, "_max_diffs", lambda eager, exported, names: dict.fromkeys(names, 1.0))
     with pytest.raises(MatlError, match="differs from the eager model"):
