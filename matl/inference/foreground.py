@@ -27,7 +27,9 @@ the foreground step gives it one, and the query is then used exactly as an RGBA 
   whose colours resemble the background, or a neighbour the 2 px band did not seed, is separated by a
   wider band. Each mask is recognised and verified like the first, and the query keeps the answer that
   verifies best (the first one's if none does better). A query whose first answer verifies costs nothing.
-  ``foreground=learned`` retries at other thresholds of the probability instead (``retry_thresholds``).
+  ``foreground=learned`` retries at other thresholds of the probability (``retry_thresholds``) and with
+  GrabCut's masks from rectangles inset by ``retry_insets`` (0: the border band alone), which do not lean on
+  the network.
 * ``passes`` pose passes (:func:`pose_mask`): the first answer's plane, warped by its pose
   ``query_H_canon`` into the query, is a mask of the product's true outline; the query is masked again
   with it (intersected with the GrabCut alpha, so background within the pose's error stays out) and
@@ -277,7 +279,8 @@ class LearnedForeground:
             below ``background_below`` and the crop's ``band_px`` border band are background, the rest probable
             foreground) for this many iterations, then cleaned up as the network's own mask (its edge follows the
             crop's colours where the network's 64 px map is blunt; the occluders and neighbours the network rules
-            out stay out). 0: the thresholded probability alone. The retries stay the network's own masks.
+            out stay out). 0: the thresholded probability alone. The retries are ``retry_thresholds``' and
+            ``retry_insets``' masks.
         background_below: probability below which a pixel is background for GrabCut.
         band_px: width of the border band seeded as background for GrabCut, px of the crop.
         max_side: GrabCut runs on a copy of a crop whose longer side is larger, resized to this side (None: at
