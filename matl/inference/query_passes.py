@@ -74,9 +74,10 @@ class QueryPasses:
                             pred: Prediction, queries: torch.Tensor, verification: Verification,
                             visibility: torch.Tensor | None
                             ) -> tuple[Prediction, torch.Tensor, Verification, torch.Tensor | None]:
-        """``foreground.retry_insets``: each GrabCut-masked query whose answer does not verify is masked again by
-        GrabCut from wider insets (:meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
-        ``retry_thresholds``) and answered again; it keeps an answer that verifies over one that does not, then the
+        """Retries: each query masked by the foreground step whose answer does not verify is masked again (GrabCut
+        from wider insets, :meth:`GrabCutForeground.retries`; ``foreground=learned``: at other thresholds,
+        ``retry_thresholds``, and by GrabCut from ``retry_insets``, :meth:`LearnedForeground.retries`) and answered
+        again; it keeps an answer that verifies over one that does not, then the
         one whose verification distance is lowest (its first one on a tie). The file frame does not change (a mask
         keeps the crop's size). Returns the prediction, queries, verification and visibility with the retried rows'
         answers taken where better."""
