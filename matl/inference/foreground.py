@@ -184,15 +184,10 @@ class GrabCutForeground:
         h, w = rgb.shape[:2]
         if h <= 2 * inset + 2 or w <= 2 * inset + 2:
             return None
-        bgr = np.ascontiguousarray((np.clip(rgb, 0.0, 1.0) * 255.0).round().astype(np.uint8)[..., ::-1])
-        labels = np.zeros((h, w), np.uint8)
-        background, foreground = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-        cv2.setRNGSeed(int(self.seed))
-        try:
-            cv2.grabCut(bgr, labels, (inset, inset, w - 2 * inset, h - 2 * inset), background, foreground,
-                        int(self.iterations), cv2.GC_INIT_WITH_RECT)
-        except cv2.error:  # a colour model without samples (e.g. a flat image)
-            return None
+        labels = np.full((h, w), cv2.GC_BGD, np.uint8)  # the rectangle: probable foreground inside, background out
+        labels[inset:h - inset, inset:w - inset] = cv2.GC_PR_FGD
+        if not _grabcut_labels(rgb, labels, int(self.iterations), int(self.seed)):
+            return None  # a colour model without samples (e.g. a flat image)
         mask = ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.uint8)
         if self.open_px > 0:
             k = 2 * int(self.open_px) + 1
