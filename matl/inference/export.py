@@ -553,9 +553,9 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("foreground_net") not in (None, False, "none"):
         from matl.models.visibility import load_visibility_net
 
-        weights = cfg.foreground_net
-        foreground = load_visibility_net(None if weights in (True, "shipped") else str(weights))
-        meta["foreground_weights"] = "shipped" if weights in (True, "shipped") else str(weights)
+        shipped = cfg.foreground_net in (True, "shipped")
+        foreground = load_visibility_net(None if shipped else str(cfg.foreground_net))
+        meta["foreground_weights"] = "shipped" if shipped else str(cfg.foreground_net)
     info = export_inference(model.feature_net, stn, size, cfg.out, str(cfg.format), float(cfg.tolerance), meta=meta,
                             num_anchors=num_anchors, align=align, foreground=foreground)
     log.info("export: %s", json.dumps(info))
