@@ -592,6 +592,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             with stage(self.stage_timer, "uncover"):
                 pred, queries, verification, visibility, covering = self._uncovered(
                     recognizer, prepared, pred, queries, query_H_file, verification, visibility)
+                verification = self._subjects_verified(prepared, pred, queries, verification, visibility)
         if verification is not None and self.foreground is not None and self.foreground.retrying:
             with stage(self.stage_timer, "retries"):
                 pred, queries, verification, visibility = self._foreground_retries(

@@ -147,6 +147,9 @@ class QueryPasses:
         alt_pred, alt_queries, alt_H_file, alt_verification, alt_visibility = self._answer(recognizer, again)
         if self.keypoint_pose.active and alt_pred.query_H_anchor is not None:
             alt_pred, alt_verification = self._keypoint_poses(again, alt_pred, alt_H_file, alt_verification)
+        if self.flow_pose.active and alt_pred.query_H_anchor is not None:
+            alt_pred, alt_verification = self._flow_poses(alt_queries, alt_pred, alt_verification, alt_visibility,
+                                                          _upscale(alt_H_file))
         alt_plane = self._answered_planes(alt_pred, list(range(len(small))))
         alt_share = covered_share(alt_plane, shown[small])
         images = self._build()[1].images
@@ -175,6 +178,32 @@ class QueryPasses:
             visibility = _with_rows(visibility, take, alt_visibility, source)
         return (_with_rows(pred, take, alt_pred, source), _with_rows(queries, take, alt_queries, source),
                 _with_rows(verification, take, alt_verification, source), visibility, covering)
+
+    def _subjects_verified(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                           queries: torch.Tensor, verification: Verification, visibility: torch.Tensor | None
+                           ) -> Verification:
+        """``verification`` with each answer held unverified although its pose verifies (distance within
+        ``verify_max``: another product's keypoint pose, held because it might lie across the crop's subject) counted
+        as verified where the crop has a mask (the foreground step's, an RGBA alpha) and the answer's plane covers at
+        least ``uncover`` of the pixels it shows: then it is the crop's subject, not a product lying across a part of
+        it (:meth:`_uncovered` explains those away). A crop without a mask stays the open-set statistic's to judge."""
+        rows = [i for i, (masked, rgb, found) in enumerate(prepared)
+                if (found is not None or masked is not rgb) and not bool(verification.verified[i])
+                and float(verification.distance[i]) <= self.verify_max]
+        if not rows:
+            return verification
+        if int(getattr(self.foreground, "passes", 0)) == 0:  # the queries as the foreground step masked them
+            framed = queries[rows]
+        else:  # the pose passes masked them by the answered plane too: the foreground step's mask alone
+            framed = torch.stack([fit_to_model(prepared[i][0], self.image_size, self.query_fill)[0] for i in rows])
+        shown = shown_pixels(framed, None if visibility is None else visibility[rows]).cpu()
+        share = covered_share(self._answered_planes(pred, rows), shown)
+        subject = [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= self.uncover]
+        if not subject:
+            return verification
+        verified = verification.verified.clone()
+        verified[subject] = True
+        return dataclasses.replace(verification, verified=verified)
 
     def _centre_offset(self, pred: Prediction, row: int) -> float:
         """How far from its query's centre row ``row``'s answered plane lies

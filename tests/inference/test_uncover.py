@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from matl import Recognizer
 from matl.data.image_files import fit_geometry
 from matl.geometry import corner_error_px
 from matl.inference.files import record_of
+from matl.inference.query_passes import QueryPasses
 from matl.inference.uncover import (
     MIN_OVERLAP,
     centre_offset,
@@ -20,6 +22,7 @@ from matl.inference.uncover import (
     lies_on_top,
     shown_pixels,
 )
+from matl.inference.verify import Verification
 from matl.utils.errors import MatlError
 from tests.inference.test_api import SIZE, StubModel, stub_recognizer
 from tests.inference.test_keypoint_pose import GALLERY_HW, print_like
@@ -137,3 +140,38 @@ def test_uncover_must_be_a_share() -> None:
         with pytest.raises(MatlError, match=r"uncover=.* is invalid: use a share of the crop in \(0, 1\]"):
             stub_recognizer(uncover=bad)
     assert stub_recognizer(uncover=None).uncover is None and stub_recognizer(uncover=1).uncover == 1.0
+
+
+def test_a_held_answer_that_covers_the_crop_is_its_subject() -> None:
+    """An answer whose pose verifies but is held unverified (another product's keypoint pose, which might lie
+    across the crop's subject) counts as verified where the crop has a mask and the answer's plane covers at least
+    ``uncover`` of what the crop shows; one covering a quarter of it, one whose pose does not verify, and one of a
+    crop without a mask stay as they were."""
+    S = 32
+    whole = torch.full((3, S, S), 200, dtype=torch.uint8)
+    quarter = torch.zeros((3, S, S), dtype=torch.uint8)
+    quarter[:, :, : S // 4] = 200
+
+    class Passes(QueryPasses):
+        verify_max, uncover, image_size, query_fill = 0.1, 0.7, S, 1.0
+        foreground = None
+        _planes = (SimpleNamespace(canon_u8=whole), SimpleNamespace(canon_u8=quarter))
+
+    queries = torch.full((4, 3, S, S), 0.5)
+    pred = SimpleNamespace(plane_index=torch.tensor([0, 1, 0, 0]),
+                           query_H_canon=torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
+    held = Verification(gallery_index=torch.zeros(4, dtype=torch.long), query_H_anchor=torch.eye(3).repeat(4, 1, 1),
+                        feature_distance=torch.zeros(4), distance=torch.tensor([0.05, 0.05, 0.5, 0.02]),
+                        verified=torch.tensor([False, False, False, True]), tried=torch.ones(4, dtype=torch.long))
+    rgb = np.zeros((S, S, 3), np.float32)
+    prepared = [(rgb, rgb, np.ones((S, S), np.float32))] * 4  # RGB crops masked by the foreground step
+    out = Passes()._subjects_verified(prepared, pred, queries, held, None)
+    assert out.verified.tolist() == [True, False, False, True]
+    assert torch.equal(out.distance, held.distance) and not held.verified[0]  # the input is left as it was
+    # a crop without a mask stays the open-set statistic's to judge
+    assert not Passes()._subjects_verified([(rgb, rgb, None)] * 4, pred, queries, held, None).verified[0]
+    # what the crop shows is the plane's quarter alone (the rest not visible): that plane is its subject
+    visibility = torch.ones(4, 1, S, S)
+    visibility[1, :, :, S // 4:] = 0.0
+    assert Passes()._subjects_verified(prepared, pred, queries, held, visibility).verified.tolist() == [
+        True, True, False, True]
