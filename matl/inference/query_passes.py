@@ -4,7 +4,8 @@ A query prepared by :func:`~matl.inference.foreground.mask_query` is framed at m
 tightened by its answered plane's outline for ``foreground.passes``), verified and re-ranked
 (:meth:`QueryPasses._answer`); one whose answer does not verify is masked again and answered again
 (``foreground.retry_insets``, :meth:`QueryPasses._foreground_retries`); an answer lying across the product the
-crop was cut for is explained away and the rest answered again (``uncover``, :meth:`QueryPasses._uncovered`).
+crop was cut for is explained away and the rest answered again (``uncover``, :meth:`QueryPasses._uncovered`), and an
+answer held unverified that covers the masked crop is its subject (:meth:`QueryPasses._subjects_verified`).
 """
 
 from __future__ import annotations
@@ -117,7 +118,7 @@ class QueryPasses:
         """``uncover`` (:mod:`matl.inference.uncover`): each query with a found foreground (an RGB crop) whose answer's
         pose verifies (distance within ``verify_max``, counted as verified or not) but whose plane covers less than
         ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
-        networks, verification and, where on, the keypoint pose); the new answer is taken where it is another
+        networks, verification and, where on, the keypoint and flow poses); the new answer is taken where it is another
         product, its pose verifies over what is left, its plane covers more of the crop or lies nearer its centre, and
         the first answer lies on top of it where their planes overlap (counted as verified; planes apart: a
         neighbour, the answer stands). Returns the prediction, queries, verification and visibility with the taken
@@ -128,11 +129,7 @@ class QueryPasses:
                 if found is not None and float(verification.distance[i]) <= self.verify_max]
         if not rows:
             return pred, queries, verification, visibility, {}
-        if int(self.foreground.passes) == 0:  # the queries as the foreground step masked them
-            framed = queries[rows]
-        else:  # the pose passes masked them by the answered plane too: the foreground step's mask alone
-            framed = torch.stack([fit_to_model(prepared[i][0], S, self.query_fill)[0] for i in rows])
-        shown = shown_pixels(framed, None if visibility is None else visibility[rows]).cpu()
+        shown = self._shown(prepared, queries, visibility, rows)
         plane = self._answered_planes(pred, rows)
         share = covered_share(plane, shown)
         small = [j for j in range(len(rows)) if float(share[j]) < self.uncover]
@@ -192,18 +189,24 @@ class QueryPasses:
                 and float(verification.distance[i]) <= self.verify_max]
         if not rows:
             return verification
-        if int(getattr(self.foreground, "passes", 0)) == 0:  # the queries as the foreground step masked them
-            framed = queries[rows]
-        else:  # the pose passes masked them by the answered plane too: the foreground step's mask alone
-            framed = torch.stack([fit_to_model(prepared[i][0], self.image_size, self.query_fill)[0] for i in rows])
-        shown = shown_pixels(framed, None if visibility is None else visibility[rows]).cpu()
-        share = covered_share(self._answered_planes(pred, rows), shown)
+        share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))
         subject = [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= self.uncover]
         if not subject:
             return verification
         verified = verification.verified.clone()
         verified[subject] = True
         return dataclasses.replace(verification, verified=verified)
+
+    def _shown(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], queries: torch.Tensor,
+               visibility: torch.Tensor | None, rows: list[int]) -> torch.Tensor:
+        """``(R, S, S)`` bool: the pixels the crops of rows ``rows`` show
+        (:func:`~matl.inference.uncover.shown_pixels`), as the foreground step masked them (with ``foreground.passes``
+        the answered plane masked the queries too: the step's mask alone)."""
+        if self.foreground is None or int(self.foreground.passes) == 0:
+            framed = queries[rows]
+        else:
+            framed = torch.stack([fit_to_model(prepared[i][0], self.image_size, self.query_fill)[0] for i in rows])
+        return shown_pixels(framed, None if visibility is None else visibility[rows]).cpu()
 
     def _centre_offset(self, pred: Prediction, row: int) -> float:
         """How far from its query's centre row ``row``'s answered plane lies
