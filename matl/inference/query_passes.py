@@ -23,6 +23,7 @@ from matl.inference.foreground import pose_mask
 from matl.inference.images import _query_visibility, _upscale, _with_rows
 from matl.inference.refine import RefinedRecognizer
 from matl.inference.uncover import (
+    SUBJECT_MARGIN,
     centre_offset,
     covered_share,
     erased_alpha,
@@ -181,12 +182,13 @@ class QueryPasses:
                            ) -> Verification:
         """``verification`` with each answer held unverified although its pose verifies (distance within
         ``verify_max``: another product's keypoint pose, held because it might lie across the crop's subject) counted
-        as verified where the crop has a mask (the foreground step's, an RGBA alpha) and the answer's plane covers at
-        least ``uncover`` of the pixels it shows: then it is the crop's subject, not a product lying across a part of
+        as verified where the crop has a mask (the foreground step's, an RGBA alpha), its distance is within
+        :data:`~matl.inference.uncover.SUBJECT_MARGIN` of ``verify_max`` and the answer's plane covers at least
+        ``uncover`` of the pixels the crop shows: then it is the crop's subject, not a product lying across a part of
         it (:meth:`_uncovered` explains those away). A crop without a mask stays the open-set statistic's to judge."""
         rows = [i for i, (masked, rgb, found) in enumerate(prepared)
                 if (found is not None or masked is not rgb) and not bool(verification.verified[i])
-                and float(verification.distance[i]) <= self.verify_max]
+                and float(verification.distance[i]) <= SUBJECT_MARGIN * self.verify_max]
         if not rows:
             return verification
         share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))

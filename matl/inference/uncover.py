@@ -11,7 +11,10 @@ The rest's answer is taken where it is another product, its pose verifies over w
 of the crop than the first answer's or lies nearer the crop's centre (:func:`centre_offset`), and the first answer
 lies on top of it where their planes overlap (:func:`lies_on_top`); a neighbour behind the subject (clutter) covers
 less of the crop and lies off centre, one beside it does not overlap it, and a subject lying on another product is
-not under it, so each keeps its answer.
+not under it, so each keeps its answer. Conversely an answer whose pose verifies but that is held unverified
+(another product's keypoint pose: it might be such a product lying across) and whose plane covers at least ``uncover``
+of the crop is the crop's subject, and counts as verified where its distance is within :data:`SUBJECT_MARGIN` of
+``verify_max``.
 
 This module holds the geometry (pure functions); :meth:`~matl.inference.query_passes.QueryPasses._uncovered` runs
 the step.
@@ -33,6 +36,10 @@ SHOWN_LEVEL = 0.1
 ERASE_PX = 2
 #: fewest overlap pixels :func:`lies_on_top` judges; with fewer there is no evidence of which one is on top
 MIN_OVERLAP = 20
+#: an answer held unverified (another product's keypoint pose) whose plane covers the crop is its subject when its
+#: verification distance is within this share of ``verify_max``: the keypoints chose a product the embedding did not
+#: put first, so its print must match with a margin (docs/decisions.md)
+SUBJECT_MARGIN = 0.5
 
 
 def shown_pixels(queries: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -143,10 +144,10 @@ def test_uncover_must_be_a_share() -> None:
 
 
 def test_a_held_answer_that_covers_the_crop_is_its_subject() -> None:
-    """An answer whose pose verifies but is held unverified (another product's keypoint pose, which might lie
-    across the crop's subject) counts as verified where the crop has a mask and the answer's plane covers at least
-    ``uncover`` of what the crop shows; one covering a quarter of it, one whose pose does not verify, and one of a
-    crop without a mask stay as they were."""
+    """An answer whose pose verifies with a margin but is held unverified (another product's keypoint pose, which
+    might lie across the crop's subject) counts as verified where the crop has a mask and the answer's plane covers at
+    least ``uncover`` of what the crop shows; one covering a quarter of it, one whose pose does not verify or verifies
+    without the margin, and one of a crop without a mask stay as they were."""
     S = 32
     whole = torch.full((3, S, S), 200, dtype=torch.uint8)
     quarter = torch.zeros((3, S, S), dtype=torch.uint8)
@@ -161,13 +162,16 @@ def test_a_held_answer_that_covers_the_crop_is_its_subject() -> None:
     pred = SimpleNamespace(plane_index=torch.tensor([0, 1, 0, 0]),
                            query_H_canon=torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
     held = Verification(gallery_index=torch.zeros(4, dtype=torch.long), query_H_anchor=torch.eye(3).repeat(4, 1, 1),
-                        feature_distance=torch.zeros(4), distance=torch.tensor([0.05, 0.05, 0.5, 0.02]),
+                        feature_distance=torch.zeros(4), distance=torch.tensor([0.04, 0.04, 0.5, 0.02]),
                         verified=torch.tensor([False, False, False, True]), tried=torch.ones(4, dtype=torch.long))
     rgb = np.zeros((S, S, 3), np.float32)
     prepared = [(rgb, rgb, np.ones((S, S), np.float32))] * 4  # RGB crops masked by the foreground step
     out = Passes()._subjects_verified(prepared, pred, queries, held, None)
     assert out.verified.tolist() == [True, False, False, True]
     assert torch.equal(out.distance, held.distance) and not held.verified[0]  # the input is left as it was
+    # verified with too little margin (SUBJECT_MARGIN of verify_max): held
+    at_margin = dataclasses.replace(held, distance=torch.tensor([0.06, 0.04, 0.5, 0.02]))
+    assert not Passes()._subjects_verified(prepared, pred, queries, at_margin, None).verified[0]
     # a crop without a mask stays the open-set statistic's to judge
     assert not Passes()._subjects_verified([(rgb, rgb, None)] * 4, pred, queries, held, None).verified[0]
     # what the crop shows is the plane's quarter alone (the rest not visible): that plane is its subject
