@@ -229,11 +229,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             kept (:meth:`~matl.inference.verification.Verifying._lookalikes`); None: never.
         uncover: an RGB crop's answer whose pose verifies but whose plane covers less than this share of what the
             crop shows (another product lying across the one the crop was cut for) is erased from the crop's
-            foreground and the rest answered again (posed by the keypoints and the flow as a first answer is); the
-            rest's answer is taken where it is another product that verifies, covers more of the crop or lies nearer
-            its centre, and lies under the first (:mod:`matl.inference.uncover`). A masked crop's answer whose pose
-            verifies but that was held unverified (another product's keypoint pose) counts as verified where its
-            plane covers at least this share: it is the crop's subject. None: never.
+            foreground and the rest answered again; the rest's answer is taken where it is another product that
+            verifies, covers more of the crop or lies nearer its centre, and lies under the first
+            (:mod:`matl.inference.uncover`). A masked crop's answer whose pose verifies with a margin but that was
+            held unverified (another product's keypoint pose) counts as verified where its plane covers at least this
+            share: it is the crop's subject. None: never.
         pose_judge: how the flow pose is judged against the answer's pose: ``both`` (default: the sum of the two
             distances below), ``explained`` (how badly the anchor, warped into the query by each pose, explains the
             query's visible foreground, over the same pixels for both poses:

@@ -119,7 +119,7 @@ class QueryPasses:
         """``uncover`` (:mod:`matl.inference.uncover`): each query with a found foreground (an RGB crop) whose answer's
         pose verifies (distance within ``verify_max``, counted as verified or not) but whose plane covers less than
         ``uncover`` of the crop's shown pixels is answered again with that plane erased from its foreground (the
-        networks, verification and, where on, the keypoint and flow poses); the new answer is taken where it is another
+        networks, verification and, where on, the keypoint pose); the new answer is taken where it is another
         product, its pose verifies over what is left, its plane covers more of the crop or lies nearer its centre, and
         the first answer lies on top of it where their planes overlap (counted as verified; planes apart: a
         neighbour, the answer stands). Returns the prediction, queries, verification and visibility with the taken
@@ -145,9 +145,6 @@ class QueryPasses:
         alt_pred, alt_queries, alt_H_file, alt_verification, alt_visibility = self._answer(recognizer, again)
         if self.keypoint_pose.active and alt_pred.query_H_anchor is not None:
             alt_pred, alt_verification = self._keypoint_poses(again, alt_pred, alt_H_file, alt_verification)
-        if self.flow_pose.active and alt_pred.query_H_anchor is not None:
-            alt_pred, alt_verification = self._flow_poses(alt_queries, alt_pred, alt_verification, alt_visibility,
-                                                          _upscale(alt_H_file))
         alt_plane = self._answered_planes(alt_pred, list(range(len(small))))
         alt_share = covered_share(alt_plane, shown[small])
         images = self._build()[1].images
