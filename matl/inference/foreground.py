@@ -215,12 +215,10 @@ def _grabcut_alpha(rgb: np.ndarray, alpha: np.ndarray, band: int, iterations: in
     """An alpha ``(H, W)`` in [0, 1] of the float RGB ``(H, W, 3)`` pixels under it with its edge decided by GrabCut
     (``iterations``, ``seed``) within ``band`` px of it: ``(H, W)`` float32 in {0, 1}, or ``alpha`` itself with
     ``band`` 0, when the alpha has no pixel farther than the band inside or outside it, or GrabCut cannot run."""
-    inside = (alpha > 0.5).astype(np.uint8)
     if band == 0:
         return alpha
-    outside_d = cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5)
-    inside_d = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
-    labels = np.where(inside > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+    inside, outside_d, inside_d = _edge_distances(alpha)
+    labels = np.where(inside, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
     labels[outside_d > band] = cv2.GC_BGD
     labels[inside_d > band] = cv2.GC_FGD
     if not (labels == cv2.GC_BGD).any() or not (labels == cv2.GC_FGD).any():
@@ -228,6 +226,14 @@ def _grabcut_alpha(rgb: np.ndarray, alpha: np.ndarray, band: int, iterations: in
     if not _grabcut_labels(rgb, labels, iterations, seed):
         return alpha
     return ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
+
+
+def _edge_distances(alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An alpha ``(H, W)``'s pixels above 0.5 (bool) and each pixel's distance, px, to the nearest pixel inside it
+    (0 inside) and to the nearest outside it (0 outside): where its edge lies and how far."""
+    inside = (alpha > 0.5).astype(np.uint8)
+    return (inside > 0, cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5),
+            cv2.distanceTransform(inside, cv2.DIST_L2, 5))
 
 
 def _grabcut_labels(rgb: np.ndarray, labels: np.ndarray, iterations: int, seed: int) -> bool:
@@ -561,11 +567,10 @@ class LearnedForeground:
             return alpha
         if int(self.grabcut_iterations) > 0:
             return _grabcut_alpha(rgb, alpha, band, int(self.grabcut_iterations), int(self.seed))
-        inside = (alpha > 0.5).astype(np.uint8)
-        near = (cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5) <= band) & \
-            (cv2.distanceTransform(inside, cv2.DIST_L2, 5) <= band)
+        inside, outside_d, inside_d = _edge_distances(alpha)
+        near = (outside_d <= band) & (inside_d <= band)
         found = self.probability(rgb) > float(self.threshold)
-        return np.where(near, found, inside > 0).astype(np.float32)
+        return np.where(near, found, inside).astype(np.float32)
 
 
 def _resized(net: Any, size: int) -> Any:
