@@ -240,7 +240,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             :func:`~matl.inference.verify.explained_distance`) or ``verification`` (the verification distance, in
             the anchor's frame, over the part of the plane each pose puts under the query's mask).
         refine_check: a second judge of a refined pose beside the refiner's own loss: ``judge`` (default): a refined
-            answer that does not verify, or verifies above 0.03, meets the pose the recognizer gives without
+            answer that does not verify meets the pose the recognizer gives without
             refinement (``s()`` and the model's alignment stage) and ``pose_judge`` keeps the better, before the flow
             pose (:meth:`~matl.inference.verification.Verifying._unrefined_poses`); ``verify`` keeps the refiner's
             start where its verification distance (``verify_blur``, ``verify_statistic``, over the query's
@@ -600,7 +600,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 pred, queries, verification, visibility = self._foreground_retries(
                     recognizer, prepared, pred, queries, verification, visibility)
         if verification is not None and self.refine_check == "judge" and pred.query_H_anchor is not None:
-            # a doubtful refined answer meets its unrefined pose; the flow starts from the one judged better
+            # a refined answer that does not verify meets its unrefined pose; the flow starts from the one judged better
             pred, verification = self._unrefined_poses(queries, pred, verification, visibility)
         if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)

@@ -14,7 +14,6 @@ import torch
 
 from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
-from matl.inference.flow_pose import FlowPose
 from matl.inference.images import _with_rows
 from matl.inference.verify import (
     CandidatePose,
@@ -28,9 +27,6 @@ from matl.models.prediction import Prediction
 from matl.utils.timing import stage
 
 VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k candidates in one batch)
-#: ``refine_check=judge``: a refined answer whose verification distance is above this (or that does not verify) meets
-#: its unrefined pose (the flow pose's default ``above``: a pose verifying that closely is left as it is)
-DOUBTFUL = FlowPose.above
 #: ``lookalike_ratio``: most other products within the ratio a verified answer meets, nearest first (a look-alike
 #: family of up to 4)
 LOOKALIKE_RIVALS = 3
@@ -78,16 +74,15 @@ class Verifying:
 
     def _unrefined_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
                          visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:
-        """``refine_check=judge``: each refined answer that does not verify, or whose verification distance is above
-        :data:`DOUBTFUL`, meets the pose the recognizer gives without refinement (``s()``'s, then the model's
-        alignment stage, which the refinement skips) against the same anchor; ``pose_judge`` (:meth:`_judged`) keeps
-        the lower, and the flow stage starts from it. Such a pose that verifies within ``verify_max`` counts as
-        verified, as it does for the unrefined recognizer. ``queries`` ``(B, 3, S, S)`` and ``visibility``
-        ``(B, 1, S, S)`` (or None) as verification saw them."""
+        """``refine_check=judge``: each refined answer that does not verify meets the pose the recognizer gives without
+        refinement (``s()``'s, then the model's alignment stage, which the refinement skips) against the same anchor;
+        ``pose_judge`` (:meth:`_judged`) keeps the lower, and the flow stage starts from it. Such a pose that verifies
+        within ``verify_max`` counts as verified, as it does for the unrefined recognizer. A refined answer that
+        verifies is left as it is (on validation meeting the unrefined pose moved none of them, docs/decisions.md).
+        ``queries`` ``(B, 3, S, S)`` and ``visibility`` ``(B, 1, S, S)`` (or None) as verification saw them."""
         if self.refiner is None:  # the answers' poses are the unrefined ones already
             return pred, verification
-        rows = [i for i in range(len(queries)) if not bool(verification.verified[i])
-                or float(verification.distance[i]) > DOUBTFUL]
+        rows = [i for i in range(len(queries)) if not bool(verification.verified[i])]
         if not rows:
             return pred, verification
         with stage(self.stage_timer, "alignment"):

@@ -68,7 +68,7 @@ PATCH_TEXTURE = 0.02
 #: ``patches``: the share of the usable patches, best first, whose ``1 - ZNCC`` is averaged
 PATCH_KEEP = 0.5
 #: ``patches``: fewest usable patches the patches' part needs (a smaller plane is judged by its ZNCC alone)
-MIN_PATCHES = 6
+MIN_PATCHES = 4
 #: ``patches``: the patches' trimmed mean counts this many times over (it must be this much lower than ``verify_max``:
 #: the best half of a plane's patches can match another product's that shares its layout)
 PATCH_STRICTNESS = 3.5

@@ -251,11 +251,11 @@ class Astray(FastRefiner):
         return dataclasses.replace(result, query_H_anchor=result.query_H_anchor @ shift)
 
 
-def test_a_doubtful_refined_answer_meets_its_unrefined_pose(gallery: Path) -> None:
+def test_a_refined_answer_that_does_not_verify_meets_its_unrefined_pose(gallery: Path) -> None:
     query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
 
-    def answer(check: str, shift: float = 0.0) -> Match:
-        return off_pose_recognizer(shift, refine=Astray(), refine_check=check, flow_pose="none").enrol(
+    def answer(check: str, shift: float = 0.0, **options: object) -> Match:
+        return off_pose_recognizer(shift, refine=Astray(), refine_check=check, flow_pose="none", **options).enrol(
             gallery, cache=False).predict(query)
 
     # s() gives the truth: refine_check=judge takes it over the refinement's pose 6 px off, which verifies worse
@@ -263,4 +263,6 @@ def test_a_doubtful_refined_answer_meets_its_unrefined_pose(gallery: Path) -> No
     assert error_px(astray.H) > 5.0 and error_px(judged.H) < 1.0 and judged.verification < astray.verification
     # s() 8 px off: the refined pose (6 px off the truth) is judged the better and stays
     np.testing.assert_array_equal(answer("judge", 8.0).H, answer("none", 8.0).H)
+    # a refined answer that verifies (here every pose does) is left as it is
+    np.testing.assert_array_equal(answer("judge", verify_max=2.0).H, answer("none", verify_max=2.0).H)
     assert off_pose_recognizer(0.0).options()["refine_check"] == "judge"  # the default
