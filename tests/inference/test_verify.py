@@ -275,6 +275,16 @@ def test_too_little_visible_is_not_a_verification() -> None:
     seen = anchor_foreground(anchor, 1).float() * strip
     whole = 1.0 - float(weighted_zncc(gaussian_blur(other, 1.0), gaussian_blur(anchor, 1.0), seen)[0])
     assert float(verification_distance(other, pose, anchor, **args)[0]) == pytest.approx(whole, abs=1e-6)
+    # a strip of MIN_PATCHES usable patches is judged by them: the anchor's print under half of it, another's under
+    # the rest (an occluder the mask missed) fails the strip's whole ZNCC and passes the patches' best half
+    assert MIN_PATCHES == 4
+    strip = torch.zeros(1, 1, 64, 64)
+    strip[..., 24:32, 16:48] = 1.0
+    half_hidden = other.clone()
+    half_hidden[..., 20:36, 12:35] = anchor[..., 20:36, 12:35]  # 3 px past the patch: the blur
+    seen = anchor_foreground(anchor, 1).float() * strip
+    whole = 1.0 - float(weighted_zncc(gaussian_blur(half_hidden, 1.0), gaussian_blur(anchor, 1.0), seen)[0])
+    assert whole > 0.1 > 0.02 > float(verification_distance(half_hidden, pose, anchor, **args)[0])
 
 
 def test_weighted_zncc_is_zncc_with_a_binary_weight() -> None:
