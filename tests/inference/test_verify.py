@@ -284,7 +284,8 @@ def test_too_little_visible_is_not_a_verification() -> None:
     half_hidden[..., 20:36, 12:35] = anchor[..., 20:36, 12:35]  # 3 px past the patch: the blur
     seen = anchor_foreground(anchor, 1).float() * strip
     whole = 1.0 - float(weighted_zncc(gaussian_blur(half_hidden, 1.0), gaussian_blur(anchor, 1.0), seen)[0])
-    assert whole > 0.1 > 0.02 > float(verification_distance(half_hidden, pose, anchor, **args)[0])
+    four = {**args, "visibility": strip}
+    assert whole > 0.1 > 0.02 > float(verification_distance(half_hidden, pose, anchor, **four)[0])
 
 
 def test_weighted_zncc_is_zncc_with_a_binary_weight() -> None:
