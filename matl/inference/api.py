@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -117,6 +118,7 @@ from matl.models.prediction import Prediction
 from matl.models.recognizer import TensorRecognizer, embed
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.errors import MatlError
+from matl.utils.threads import thread_map
 from matl.utils.timing import StageTimer, stage
 
 # the shipped models' names and paths are matl.models.checkpoint's (the one resolver of ckpt=), importable here too;
@@ -577,7 +579,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         model-size queries."""
         recognizer, _ = self._build()
         with stage(self.stage_timer, "foreground"):
-            prepared = [mask_query(self.foreground, a) for a in arrays]  # (masked, rgb, alpha found or None)
+            # (masked, rgb, alpha found or None), the crops over torch's threads
+            prepared = thread_map(functools.partial(mask_query, self.foreground), arrays)
         pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
         covering: dict[int, Covering] = {}  # uncover: what lies across a row's answer
         taken = None  # (the features, their per-product distances): kept for the open-set answer while they hold

@@ -38,6 +38,7 @@ from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.config import is_int, is_number
 from matl.utils.errors import MatlError
+from matl.utils.threads import thread_map
 from matl.utils.timing import stage
 
 __all__ = ["FLOW_POSE_MODES", "FLOW_PRESETS", "FlowPose", "FlowPoses"]
@@ -270,10 +271,11 @@ class FlowPoses:
             failed = [i for i in rows if float(verification.distance[i]) > self.verify_max]
             going = {i: (pred.query_H_anchor[i], float("inf")) for i in rows}  # each row's start and last move
             for _ in range(settings.rounds):
-                steps = {i: settings.step(queries[i], images[int(pred.gallery_index[i])], start,
-                                          None if visibility is None else visibility[i], last_move)
-                         for i, (start, last_move) in going.items()}
-                steps = {i: found for i, found in steps.items() if found is not None}
+                calls = [(queries[i], images[int(pred.gallery_index[i])], start,
+                          None if visibility is None else visibility[i], last_move)
+                         for i, (start, last_move) in going.items()]
+                found_steps = thread_map(lambda call: settings.step(*call), calls)  # the rows over torch's threads
+                steps = {i: found for i, found in zip(going, found_steps, strict=True) if found is not None}
                 if not steps:
                     break
                 at = list(steps)  # each round's pose judged against the best so far

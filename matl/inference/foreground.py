@@ -44,6 +44,7 @@ before every call, so a query gets the same mask every time.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -54,6 +55,7 @@ import torch
 
 from matl.geometry import warp_image
 from matl.utils.errors import MatlError
+from matl.utils.threads import thread_map
 
 __all__ = ["FOREGROUNDS", "ForegroundStep", "GrabCutForeground", "LearnedForeground", "foreground_option",
            "mask_query", "pose_mask", "split_alpha"]
@@ -147,7 +149,8 @@ class GrabCutForeground:
         crop's shorter side, at least ``inset_px``) for a float RGB ``(H, W, 3)`` crop in [0, 1]; none for a crop
         that :meth:`__call__` uses as given, and none where GrabCut finds nothing."""
         side = min(rgb.shape[:2])
-        masks = (self.segment(rgb, max(int(self.inset_px), round(f * side))) for f in self.retry_insets)
+        insets = [max(int(self.inset_px), round(f * side)) for f in self.retry_insets]
+        masks = thread_map(lambda inset: self.segment(rgb, inset), insets)  # over torch's threads
         return [m for m in masks if m is not None]
 
     def segments(self, rgb: np.ndarray) -> bool:
@@ -366,6 +369,7 @@ class LearnedForeground:
         self._net = net.eval()
         self._rectangle = GrabCutForeground(inset_px=int(self.band_px), max_side=self.max_side, seed=int(self.seed))
         self._sessions: dict[int, Any] = {}
+        self._session_lock = threading.Lock()
         self._graph: bytes | None = None
         self.failure: str | None = None  # why onnxruntime is not used, when it is not
 
@@ -391,18 +395,19 @@ class LearnedForeground:
     # ------------------------------------------------------------------------------ the network
     def _session(self) -> Any:
         """The onnxruntime session at the current thread count, or None (torch answers; ``failure`` says why)."""
-        if self.runtime != "onnxruntime" or self.failure is not None:
-            return None
-        if self._graph is None:
-            try:
-                self._graph = self._export()
-            except Exception as error:  # onnx / onnxruntime missing, or an operator refused: torch answers
-                self.failure = f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
-                return None
         threads = int(self.threads) if self.threads is not None else torch.get_num_threads()
-        if threads not in self._sessions:
-            self._sessions[threads] = _onnx_session(self._graph, threads)
-        return self._sessions[threads]
+        with self._session_lock:  # the crops of a batch are masked in threads (matl.utils.threads)
+            if self.runtime != "onnxruntime" or self.failure is not None:
+                return None
+            if self._graph is None:
+                try:
+                    self._graph = self._export()
+                except Exception as error:  # onnx / onnxruntime missing, or an operator refused: torch answers
+                    self.failure = f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
+                    return None
+            if threads not in self._sessions:
+                self._sessions[threads] = _onnx_session(self._graph, threads)
+            return self._sessions[threads]
 
     def _export(self) -> bytes:
         """The network as ONNX bytes, checked against torch on random images within :data:`ONNX_TOLERANCE`."""
@@ -511,7 +516,8 @@ class LearnedForeground:
             prob = self.probability(rgb)
             masks += [self.mask(prob, t) for t in self.retry_thresholds]
         side = min(rgb.shape[:2])
-        masks += [self._rectangle.segment(rgb, max(int(self.band_px), round(f * side))) for f in self.retry_insets]
+        insets = [max(int(self.band_px), round(f * side)) for f in self.retry_insets]
+        masks += thread_map(lambda inset: self._rectangle.segment(rgb, inset), insets)  # over torch's threads
         return [m for m in masks if m is not None]
 
     def mask(self, prob: np.ndarray, threshold: float, found: np.ndarray | None = None) -> np.ndarray | None:

@@ -38,6 +38,7 @@ from matl.inference.stage_settings import StageSettings
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
 from matl.utils.errors import MatlError
+from matl.utils.threads import thread_map
 from matl.utils.timing import stage
 
 __all__ = ["KEYPOINT_POSE_MODES", "KeypointPose", "KeypointPoses"]
@@ -216,9 +217,10 @@ class KeypointPoses:
         for rank in range(settings.products):
             todo = [i for i in rows if rank < len(ranked[i]) and (rank == 0 or not bool(verification.verified[i]))]
             found = []
-            for i in todo:
-                candidate = self._keypoint_candidate(prepared[i], query_H_file[i], i, by_object[ranked[i][rank]],
-                                                     features)
+            calls = [(prepared[i], query_H_file[i], i, by_object[ranked[i][rank]], features) for i in todo]
+            # the rows over torch's threads (each writes its own entry of features)
+            candidates = thread_map(lambda call: self._keypoint_candidate(*call), calls)
+            for i, candidate in zip(todo, candidates, strict=True):
                 tried[i].append(candidate)
                 if candidate is not None:
                     found.append(candidate)

@@ -33,6 +33,7 @@ from matl.inference.uncover import (
 )
 from matl.inference.verify import Verification
 from matl.models.prediction import Prediction
+from matl.utils.threads import thread_map
 from matl.utils.timing import stage
 
 
@@ -85,11 +86,12 @@ class QueryPasses:
         answers taken where better."""
         retried: list[int] = []
         again: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
-        for i, (_, rgb, found) in enumerate(prepared):
-            if found is None or bool(verification.verified[i]):
-                continue
-            with stage(self.stage_timer, "foreground"):
-                masks = self.foreground.retries(rgb)
+        rows = [i for i, (_, _, found) in enumerate(prepared)
+                if found is not None and not bool(verification.verified[i])]
+        with stage(self.stage_timer, "foreground"):  # the crops over torch's threads
+            found_masks = thread_map(self.foreground.retries, [prepared[i][1] for i in rows])
+        for i, masks in zip(rows, found_masks, strict=True):
+            rgb = prepared[i][1]
             for mask in masks:
                 retried.append(i)
                 again.append((np.ascontiguousarray(rgb * mask[..., None]), rgb, mask))

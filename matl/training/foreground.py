@@ -130,6 +130,18 @@ def crop_ms(net: Any, crops: Any, repeats: int) -> dict[str, Any]:
     return {"ms_per_crop": round(1000.0 * float(np.median(times)), 4), "runtime": step.runtime_in_use}
 
 
+def start_from(net: Any, init: Any) -> None:
+    """Load a published visibility network's weights (``init``: a file, or ``shipped``) into ``net``, which must have
+    its settings (a fine-tune)."""
+    from matl.models.visibility import load_visibility_net
+
+    source = load_visibility_net(None if init == "shipped" else str(init))  # a missing or foreign file: one line
+    if source.config != net.config:
+        raise MatlError(f"init={init}: its network {source.config} differs from net {net.config}: fine-tune with the "
+                        "net settings it was trained with")
+    net.load_state_dict(source.state_dict())
+
+
 def train_foreground(cfg: DictConfig) -> dict[str, Any]:
     """Fit, keep the best validation IoU, write ``metrics.json`` (and the published network); returns the metrics."""
     target = check_config(cfg)
@@ -145,6 +157,8 @@ def train_foreground(cfg: DictConfig) -> dict[str, Any]:
     output_dir.mkdir(parents=True, exist_ok=True)
     datamodule = instantiate_node(cfg.data, "data")
     module = instantiate_node(cfg.model, "model")
+    if cfg.get("init") is not None:
+        start_from(module.net, cfg.init)
     callbacks = instantiate_list(cfg.get("callbacks"))
     loggers = instantiate_list(cfg.get("logger"))
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)

@@ -394,3 +394,26 @@ def test_a_large_crop_is_segmented_on_a_smaller_copy() -> None:
     np.testing.assert_array_equal(GrabCutForeground(max_side=200)(little), GrabCutForeground(max_side=None)(little))
     with pytest.raises(MatlError, match="max_side"):
         GrabCutForeground(max_side=4)
+
+
+def test_masks_made_in_threads_are_the_ones_made_one_after_another(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A batch's crops are masked over torch's threads, and a crop's GrabCut retries too (matl.utils.threads):
+    GrabCut's seeded k-means draws from each thread's own generator, so every mask is the serial one."""
+    import matl.inference.foreground as foreground_module
+
+    crops = [clutter_scene(seed)[0] for seed in range(4)]
+    steps = (GrabCutForeground(retry_insets=(0.05, 0.08, 0.12)),
+             FixedProbability(np.where(clutter_scene()[1] > 0, 0.8, 0.1).astype(np.float32), grabcut_iterations=1,
+                              retry_insets=(0.0, 0.08, 0.12)))
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        threaded = [[mask_query(step, crop)[2] for crop in crops] + [m for crop in crops for m in step.retries(crop)]
+                    for step in steps]
+        monkeypatch.setattr(foreground_module, "thread_map", lambda fn, items, workers=None: [fn(x) for x in items])
+        serial = [[mask_query(step, crop)[2] for crop in crops] + [m for crop in crops for m in step.retries(crop)]
+                  for step in steps]
+    finally:
+        torch.set_num_threads(previous)
+    assert all(len(a) == len(b) > len(crops) for a, b in zip(threaded, serial, strict=True))
+    assert all(np.array_equal(x, y) for a, b in zip(threaded, serial, strict=True) for x, y in zip(a, b, strict=True))

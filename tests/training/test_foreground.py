@@ -52,3 +52,18 @@ def test_config_mistakes_are_found_before_any_work(tmp_path: Path) -> None:
             check_config(compose_config("train_foreground", [override], tmp_path / "run"))
     assert check_config(compose_config("train_foreground", ["publish=shipped"], tmp_path / "run")) == FOREGROUND_WEIGHTS
     assert check_config(compose_config("train_foreground", [], tmp_path / "run")) is None
+
+
+def test_a_fine_tune_starts_from_the_published_network(tmp_path: Path, cache_dir: Path) -> None:
+    first, second = tmp_path / "first.ckpt", tmp_path / "second.ckpt"
+    one_epoch = [*TINY, "trainer.max_epochs=1", "timing_crops=0", f"paths.cache_dir={cache_dir}"]
+    train_foreground(compose_config("train_foreground", [*one_epoch, f"publish={first}"], tmp_path / "a"))
+    # at a learning rate of 0 the fine-tune's weights are the ones it started from (other scenes: seed 1)
+    train_foreground(compose_config("train_foreground", [*one_epoch, f"init={first}", "model.lr=0.0", "seed=1",
+                                                         f"publish={second}"], tmp_path / "b"))
+    started, tuned = (torch.load(path, weights_only=True)["state_dict"] for path in (first, second))
+    weights = [key for key in started if key.endswith(("weight", "bias"))]  # parameters (not running statistics)
+    assert weights and all(torch.equal(started[key], tuned[key]) for key in weights)
+    with pytest.raises(MatlError, match="differs from net"):
+        train_foreground(compose_config("train_foreground", [*one_epoch, "net.channels=[4,6,10]", f"init={first}"],
+                                        tmp_path / "c"))
