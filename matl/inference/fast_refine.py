@@ -91,6 +91,7 @@ from matl.inference.fast_refine_anchors import (
 )
 from matl.inference.refine import RefineResult, at_resolution
 from matl.utils.errors import MatlError
+from matl.utils.threads import thread_map
 from matl.utils.timing import opencv_threads
 
 __all__ = ["FAST_LOSSES", "REGIONS", "AnchorLevel", "AnchorTemplates", "FastRefiner"]
@@ -521,15 +522,21 @@ class FastRefiner:
         out = np.empty((B, 3, 3))
         before, after, accepted = np.empty(B), np.empty(B), np.zeros(B, dtype=bool)
         source = np.zeros(B, dtype=np.int64)
+        # each query's anchor in order (a large gallery's least recently used kept as the queries come), then the
+        # queries refined over torch's threads (the kernels release the GIL)
+        anchors = [self.anchor_levels(templates, int(index[i]), None if factor is None else float(factor[i]))
+                   for i in range(B)]
+
+        def one(i: int) -> tuple[np.ndarray, float, float, bool, int]:
+            levels, fg_levels, outside = anchors[i]
+            image, std = gray[i]
+            visible = None if seen is None or float(seen[i].min()) >= 1.0 else seen[i]
+            return self.refine_one(image, levels, starts[i], timing=B == 1, foreground=fg_levels, outside=outside,
+                                   std=std, visible=visible, alternatives=() if others is None else list(others[i]))
+
         with opencv_threads(self.threads):
-            for i in range(B):
-                levels, fg_levels, outside = self.anchor_levels(templates, int(index[i]),
-                                                                None if factor is None else float(factor[i]))
-                image, std = gray[i]
-                visible = None if seen is None or float(seen[i].min()) >= 1.0 else seen[i]
-                out[i], before[i], after[i], accepted[i], source[i] = self.refine_one(
-                    image, levels, starts[i], timing=B == 1, foreground=fg_levels, outside=outside, std=std,
-                    visible=visible, alternatives=() if others is None else list(others[i]))
+            for i, found in enumerate(thread_map(one, range(B))):
+                out[i], before[i], after[i], accepted[i], source[i] = found
         result = (torch.from_numpy(out), torch.from_numpy(before), torch.from_numpy(after), torch.from_numpy(accepted),
                   torch.from_numpy(source))
         device = query_H_anchor.device
