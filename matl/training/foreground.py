@@ -67,6 +67,10 @@ def check_config(cfg: DictConfig) -> Path | None:
     timing = cfg.get("timing_crops", 0)
     if not isinstance(timing, int) or timing < 0:
         raise MatlError(f"timing_crops={timing}: use an integer >= 0 (0: no timing)")
+    init = cfg.get("init")
+    if init is not None and init != "shipped" and not Path(str(init)).expanduser().is_file():
+        raise MatlError(f"init={init}: no such file: name a published visibility network (publish=<file> of an earlier "
+                        "run) or shipped")
     return publish_target(cfg.get("publish"))
 
 

@@ -1,13 +1,16 @@
-"""Per-crop work of a batch spread over threads: the OpenCV and onnxruntime calls of a query's foreground, retries,
-keypoints and flow release the GIL, so a frame's crops use every core torch is allowed (``torch.get_num_threads()``).
+"""Per-crop work of a batch spread over threads: the OpenCV, onnxruntime and numba calls of a query's foreground,
+retries, refinement, keypoints and flow release the GIL, so a frame's crops use every core torch is allowed
+(``torch.get_num_threads()``).
 
 The pools are kept (one per worker count): their threads, and the per-thread OpenCV objects the pose stages keep
-(:class:`~matl.inference.stage_settings.StageSettings`), live from one call to the next. A call made from inside a
-pool's thread runs its items in that thread, one after another (no nested pools, no deadlock).
+(:class:`~matl.inference.stage_settings.StageSettings`), live from one call to the next; a forked child starts its own.
+A call made from inside a pool's thread runs its items in that thread, one after another (no nested pools, no
+deadlock).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -22,6 +25,7 @@ T = TypeVar("T")
 _pools: dict[int, ThreadPoolExecutor] = {}
 _lock = threading.Lock()
 _inside = threading.local()
+os.register_at_fork(after_in_child=_pools.clear)  # a forked child has the pools but not their threads
 
 
 def _mark_inside() -> None:

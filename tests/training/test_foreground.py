@@ -47,7 +47,8 @@ def test_config_mistakes_are_found_before_any_work(tmp_path: Path) -> None:
     for override, message in ((f"publish={folder}", "is a folder"), ("net.size=20", "net.size=20"),
                               ("timing_crops=-1", "timing_crops=-1"),
                               ("+data.train_source.photos=skimage", "held-out benchmark's photo pool"),
-                              ("data.train_scenes=0", "data.train_scenes=0")):
+                              ("data.train_scenes=0", "data.train_scenes=0"),
+                              (f"init={tmp_path / 'missing.ckpt'}", "no such file")):
         with pytest.raises(MatlError, match=re.escape(message)):
             check_config(compose_config("train_foreground", [override], tmp_path / "run"))
     assert check_config(compose_config("train_foreground", ["publish=shipped"], tmp_path / "run")) == FOREGROUND_WEIGHTS

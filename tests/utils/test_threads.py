@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 
 import pytest
@@ -47,3 +49,14 @@ def test_the_first_error_is_raised() -> None:
 
     with pytest.raises(ValueError, match="two"):
         thread_map(fail_at_two, range(5), workers=2)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX")
+def test_a_forked_child_makes_its_own_pool() -> None:
+    assert thread_map(lambda x: x + 1, range(4), workers=2) == [1, 2, 3, 4]  # the parent's pool exists
+    pid = os.fork()
+    if pid == 0:  # the child: the inherited pool has no threads; a hang ends by the alarm
+        signal.alarm(20)
+        os._exit(0 if thread_map(lambda x: x * 2, range(4), workers=2) == [0, 2, 4, 6] else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
