@@ -24,7 +24,9 @@ Two statistics (``statistic``):
   a patch counts when at least :data:`PATCH_FILL` of it is visible plane and the anchor is textured there (std
   at least :data:`PATCH_TEXTURE`), and gets its own ``1 - ZNCC``; the mean of the best :data:`PATCH_KEEP` of
   them (a trimmed mean, with at least :data:`MIN_PATCHES` usable patches), times :data:`PATCH_STRICTNESS`, so an
-  occluder the mask missed costs only the patches it covers. A visible share of the plane below ``min_visible``
+  occluder the mask missed costs only the patches it covers. Along the edges of what hides the plane (not the plane's
+  own edge) :data:`OCCLUDER_MARGIN` px of the visible plane are left out (:func:`away_from_hidden`): an occluder's drop
+  shadow darkens the print beside it. A visible share of the plane below ``min_visible``
   is not a comparison (1, uncorrelated): such an answer does not verify and is judged by the open set's ratio
   test.
 """
