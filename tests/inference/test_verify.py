@@ -12,11 +12,9 @@ import torch
 from matl.inference.verify import (
     MIN_PATCHES,
     MIN_PIXELS,
-    OCCLUDER_MARGIN,
     PATCH_CELLS,
     aligned_queries,
     anchor_foreground,
-    away_from_hidden,
     explained_distance,
     gaussian_blur,
     patch_distances,
@@ -256,8 +254,7 @@ def test_too_little_visible_is_not_a_verification() -> None:
     share = float((plane.float() * mask).sum() / plane.sum())
     assert 0.3 < share < 0.35
     query = anchor * mask
-    # the shares counted as given (no margin left out along the hidden edge)
-    args = {"visibility": mask, "statistic": "patches", "skip_empty": True, "occluder_margin": 0}
+    args = {"visibility": mask, "statistic": "patches", "skip_empty": True}
     assert float(verification_distance(query, pose, anchor, min_visible=0.3, **args)[0]) < 0.02
     assert float(verification_distance(query, pose, anchor, min_visible=0.4, **args)[0]) == 1.0
     # a soft visibility counts by its value: half of everything visible is a share of a half
@@ -273,7 +270,7 @@ def test_too_little_visible_is_not_a_verification() -> None:
     other = textured(5, 64).float()
     mixed = other.clone()
     mixed[..., 20:36, 12:36] = anchor[..., 20:36, 12:36]  # the anchor's print under the strip and 4 px around it
-    args = {"visibility": strip, "statistic": "patches", "min_visible": 0.0, "occluder_margin": 0}
+    args = {"visibility": strip, "statistic": "patches", "min_visible": 0.0}
     assert float(verification_distance(mixed, pose, anchor, **args)[0]) < 0.02
     seen = anchor_foreground(anchor, 1).float() * strip
     whole = 1.0 - float(weighted_zncc(gaussian_blur(other, 1.0), gaussian_blur(anchor, 1.0), seen)[0])
@@ -321,7 +318,7 @@ def test_the_cpu_fast_path_equals_the_torch_reference() -> None:
                   ) -> torch.Tensor:  # verification_distance's "patches" in torch alone
         warped, valid, seen = aligned_queries(queries, pose, True, visibility)
         plane = _anchor_foreground_torch(anchors, 1)
-        weight = (plane & valid).float() * away_from_hidden(seen, plane, OCCLUDER_MARGIN)
+        weight = (plane & valid).float() * seen
         enough = weight.sum((1, 2, 3)) >= 0.3 * plane.sum((1, 2, 3)).clamp_min(1)
         warped, anchors = _gaussian_blur_torch(torch.cat([warped, anchors]), 1.0).split(len(anchors))
         whole = 1.0 - _weighted_zncc(*_correlations(*_cell_sums(warped, anchors, weight, 1, torch_only=True)[:2]))
@@ -377,29 +374,3 @@ def test_explained_distance_judges_poses_over_the_query_s_own_pixels() -> None:
     # nothing visible: no cell counts; no query: nothing to judge
     assert float(explained_distance(query, true, anchor, torch.zeros(1, 1, 64, 64))[0]) == 1.0
     assert explained_distance(query[:0], true[:0], anchor[:0]).shape == (0,)
-
-
-def test_the_print_beside_what_hides_it_is_left_out() -> None:
-    """An occluder's drop shadow darkens the visible print along its edge, deeper nearer it (no gain per patch explains
-    it), and the blur mixes the hidden side into that edge: ``occluder_margin`` px along the edges of what hides the
-    plane are left out; the plane's own edge is not one."""
-    anchor = textured(1, 64).float()
-    pose = torch.eye(3)[None]
-    mask = torch.zeros(1, 1, 64, 64)
-    mask[..., :, 16:40] = 1.0  # hidden left of column 16 and from column 40 on
-    query = anchor * mask
-    shadowed = query.clone()
-    shadowed[..., :, 34:40] *= torch.linspace(1.0, 0.4, 6)
-    args = {"visibility": mask, "statistic": "patches", "skip_empty": True}
-    assert OCCLUDER_MARGIN == 3
-    assert float(verification_distance(shadowed, pose, anchor, occluder_margin=0, **args)[0]) > 0.3
-    assert float(verification_distance(shadowed, pose, anchor, **args)[0]) < 0.01
-    assert float(verification_distance(query, pose, anchor, occluder_margin=0, **args)[0]) > 0.05  # the blur alone
-    assert float(verification_distance(query, pose, anchor, **args)[0]) < 0.01
-    # the erosion: from the hidden columns inward, not from the plane's own edge (rows 5-58 of the eroded plane)
-    plane = anchor_foreground(anchor, 1)
-    kept = away_from_hidden(mask, plane, 3)
-    assert torch.equal(kept[0, 0, 32, 16:40] > 0, torch.arange(16, 40).ge(19) & torch.arange(16, 40).lt(37))
-    assert bool((kept[0, 0, 5:59, 19:37] == 1.0).all())
-    whole = torch.ones(1, 1, 64, 64)
-    assert torch.equal(away_from_hidden(whole, plane, 3), whole)
