@@ -46,7 +46,6 @@ def thread_map(fn: Callable[[Any], T], items: Iterable[Any], workers: int | None
     from a pool thread: the plain loop."""
     items = list(items)
     workers = torch.get_num_threads() if workers is None else int(workers)
-    workers = min(workers, len(items))
-    if workers <= 1 or getattr(_inside, "pool", False):
+    if min(workers, len(items)) <= 1 or getattr(_inside, "pool", False):
         return [fn(x) for x in items]
-    return list(_pool(workers).map(fn, items))
+    return list(_pool(workers).map(fn, items))  # one pool per thread count, whatever the batch's size
