@@ -216,6 +216,12 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             does not verify (judged by the ratio test).
         verify_occluded_copies: ``patches``: the share of the calibration's copies with an occluder across them
             (:func:`matl.inference.calibration._occluded_copies`); 0 (default): whole copies.
+        verify_occluder_margin: ``patches``: the open set's second look (:meth:`_second_look`): an answer that
+            does not verify once its poses are final, of a crop with a mask, whose plane covers most of what the crop
+            shows and is at least a tenth hidden, is compared again leaving out this many px (default 5) of its
+            visible plane along the edges of what hides it (an occluder's drop shadow darkens the print beside it)
+            and verifies if that is within ``verify_max``; the poses are chosen over the whole visible plane all
+            the same. 0: no second look.
         keypoint_pose: ``unverified`` (default): an answer whose pose does not verify is matched by SIFT keypoints
             against its product's planes, then the next nearest products' (:mod:`matl.inference.keypoint_pose`), and
             takes that pose where it verifies better (another product only where it verifies); ``always``; ``none``;
@@ -278,6 +284,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.verify_refine = settings.verify_refine
         self.verify_statistic, self.verify_min_visible = settings.verify_statistic, settings.verify_min_visible
         self.verify_occluded_copies = settings.verify_occluded_copies
+        self.verify_occluder_margin = settings.verify_occluder_margin
         self.refine_check = settings.refine_check
         self.keypoint_pose: KeypointPose = settings.keypoint_pose
         self.flow_pose: FlowPose = settings.flow_pose
@@ -608,6 +615,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if verification is not None and self.flow_pose.active and pred.query_H_anchor is not None:
             # last: from the best pose the passes above found (the keypoints' of a hidden product among them)
             pred, verification = self._flow_poses(queries, pred, verification, visibility, _upscale(query_H_file))
+        if verification is not None and pred.query_H_anchor is not None:
+            # the open set's second look: the final poses, the print beside what hides the plane left out
+            verification = self._second_look(prepared, pred, queries, verification, visibility)
         plane = pred.plane_index.cpu()
         H = None
         if pred.query_H_canon is not None:  # the answered planes' file geometry (not the whole catalogue's)

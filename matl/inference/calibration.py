@@ -159,12 +159,11 @@ class OpenSetCalibration:
                                         for i in range(0, len(rows), 256)])
             d, objects = self._object_distances(features)
         ranked = d.sort(1).values
-        genuine_ok = None if images is None else self._verify(images, visibility=visibility).verified
+        genuine_ok = None if images is None else self._verified_copies(images, visibility)
         genuine = self._statistic(ranked[:, 0], ranked[:, 1] if len(objects) > 1 else ranked[:, 0], genuine_ok)
         impostor = torch.zeros(0, dtype=torch.float64)
         if len(objects) > 2:  # without its own product, a copy's nearest and second-nearest products
-            impostor_ok = None if images is None else self._verify(images, None, own.to(self.device),
-                                                                   visibility=visibility).verified
+            impostor_ok = None if images is None else self._verified_copies(images, visibility, own.to(self.device))
             others = d.scatter(1, own[:, None], float("inf")).sort(1).values
             impostor = self._statistic(others[:, 0], others[:, 1], impostor_ok)
         return {"genuine": genuine, "impostor": impostor}
@@ -206,6 +205,8 @@ class OpenSetCalibration:
                    "warps": self.calibration_warps, "homography": getattr(self.model, "homography_config", None),
                    "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine,
                                self.verify_statistic, self.verify_min_visible, self.verify_occluded_copies]
+                              # the second look changes only copies with an occluder across them
+                              + ([self.verify_occluder_margin] if self.verify_occluded_copies > 0 else [])
                               if self._verifying() else None),
                    "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
                    "search": self.options()["search"], "device": self.device.type, "variant": self._variant}

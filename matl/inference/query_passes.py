@@ -24,6 +24,7 @@ from matl.inference.images import _query_visibility, _upscale, _with_rows
 from matl.inference.refine import RefinedRecognizer
 from matl.inference.uncover import (
     SUBJECT_MARGIN,
+    SUBJECT_SHARE,
     centre_offset,
     covered_share,
     erased_alpha,
@@ -197,6 +198,31 @@ class QueryPasses:
         verified = verification.verified.clone()
         verified[subject] = True
         return dataclasses.replace(verification, verified=verified)
+
+    def _second_look(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                     queries: torch.Tensor, verification: Verification, visibility: torch.Tensor | None
+                     ) -> Verification:
+        """The open set's second look (:meth:`_verified_past_occluders`, ``verify_occluder_margin``) at the answers
+        that do not verify once posed, of crops with a mask (the foreground step's, an RGBA alpha), where the answer's
+        plane covers at least ``uncover`` (off: :data:`~matl.inference.uncover.SUBJECT_SHARE`) of the pixels the crop
+        shows: the crop's subject, partly hidden. A product lying across the subject covers less of the crop; its
+        print along the subject's edges is not left out for it. An answer held unverified although its distance is
+        within ``verify_max`` (another product's keypoint pose; a flow pose above ``FlowPose.verifies``) must come
+        within :data:`~matl.inference.uncover.SUBJECT_MARGIN` of it, as :meth:`_subjects_verified` asks; the others
+        within ``verify_max``."""
+        if self.verify_occluder_margin == 0 or visibility is None:
+            return verification
+        rows = [i for i, (masked, rgb, found) in enumerate(prepared)
+                if (found is not None or masked is not rgb) and not bool(verification.verified[i])]
+        if not rows:
+            return verification
+        least = SUBJECT_SHARE if self.uncover is None else self.uncover
+        share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))
+        subject = [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= least]
+        within = [SUBJECT_MARGIN * self.verify_max if float(verification.distance[i]) <= self.verify_max
+                  else self.verify_max for i in subject]
+        return self._verified_past_occluders(queries, pred.gallery_index, pred.query_H_anchor, verification,
+                                             visibility, subject, within)
 
     def _shown(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], queries: torch.Tensor,
                visibility: torch.Tensor | None, rows: list[int]) -> torch.Tensor:

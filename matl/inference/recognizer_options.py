@@ -93,6 +93,7 @@ class RecognizerOptions:
     verify_statistic: str = "patches"
     verify_min_visible: float = 0.3
     verify_occluded_copies: float = 0.0
+    verify_occluder_margin: int = 5
     refine_check: str = "judge"
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
@@ -138,6 +139,9 @@ class RecognizerOptions:
             raise MatlError(f"verify_occluded_copies={self.verify_occluded_copies!r} is invalid: use a share of the "
                             "calibration's copies in [0, 1] (0: whole copies)")
         self.verify_occluded_copies = float(self.verify_occluded_copies)
+        margin = self.verify_occluder_margin
+        if isinstance(margin, bool) or not isinstance(margin, int) or not 0 <= margin <= 16:
+            raise MatlError(f"verify_occluder_margin={margin!r} is invalid: use px in 0-16 (0: no second look)")
         if self.refine_check not in REFINE_CHECKS:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
         self.keypoint_pose = _stage(self.keypoint_pose, KeypointPose, "keypoint_pose")
@@ -177,7 +181,8 @@ class RecognizerOptions:
 #: verification and the pose stages; a key a config leaves out takes :class:`RecognizerOptions`' default, the one
 #: place the defaults are written in code (conf/predict.yaml and conf/unseen.yaml write the same values)
 CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "verify_top_k", "verify_max", "verify_blur",
-                  "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies", "refine_check",
+                  "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies",
+                  "verify_occluder_margin", "refine_check",
                   "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "uncover")
 
 

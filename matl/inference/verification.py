@@ -16,10 +16,12 @@ from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.images import _with_rows
 from matl.inference.verify import (
+    SECOND_LOOK_HIDDEN,
     CandidatePose,
     Verification,
     candidate_distances,
     explained_distance,
+    hidden_share,
     verification_distance,
     verify_candidates,
 )
@@ -71,6 +73,53 @@ class Verifying:
         return verification_distance(queries, query_H_anchor, gallery.images[gallery_index.to(gallery.images.device)],
                                      self.verify_blur, skip_empty=True, visibility=visibility,
                                      statistic=self.verify_statistic, min_visible=self.verify_min_visible)
+
+    def _verified_past_occluders(self, queries: torch.Tensor, gallery_index: torch.Tensor,
+                                 query_H_anchor: torch.Tensor, verification: Verification,
+                                 visibility: torch.Tensor | None, rows: list[int] | None = None,
+                                 within: list[float] | None = None) -> Verification:
+        """The open set's second look (``verify_occluder_margin``): the answers of rows ``rows`` (None: every one that
+        does not verify), posed ``query_H_anchor`` ``(B, 3, 3)`` against gallery anchors ``gallery_index`` ``(B,)``,
+        are compared again leaving out the visible plane's ``verify_occluder_margin`` px along the edges of what
+        hides it, where at least :data:`~matl.inference.verify.SECOND_LOOK_HIDDEN` of the plane is hidden (a whole
+        product has no occluder's edge: what the margin would leave out there is the mask's and the pose's misfit);
+        one within ``within`` (one distance per row; None: ``verify_max``) verifies, with that distance.
+        The poses stay as they are: they were chosen over the whole visible plane, whose print along an occluder's
+        edge tells a pose a few px off from the right one. ``queries`` ``(B, 3, S, S)`` and ``visibility``
+        ``(B, 1, S, S)`` (None: nothing hidden, nothing to do) as verification saw them."""
+        if self.verify_occluder_margin == 0 or visibility is None or self.verify_statistic != "patches":
+            return verification
+        if rows is None:
+            rows = torch.nonzero(~verification.verified).flatten().tolist()
+        if not rows:
+            return verification
+        at = torch.as_tensor(rows, dtype=torch.long)
+        images = self._build()[1].images
+        index = gallery_index[at.to(gallery_index.device)]
+        shown, poses = queries[at.to(queries.device)], query_H_anchor[at.to(query_H_anchor.device)]
+        anchors, seen = images[index.to(images.device)], visibility[at.to(visibility.device)]
+        distance = verification_distance(shown, poses, anchors, self.verify_blur, skip_empty=True, visibility=seen,
+                                         statistic="patches", min_visible=self.verify_min_visible,
+                                         occluder_margin=self.verify_occluder_margin)
+        limit = torch.full_like(distance, self.verify_max) if within is None else torch.as_tensor(within).to(distance)
+        now = (distance <= limit) & (hidden_share(shown, poses, anchors, seen) >= SECOND_LOOK_HIDDEN)
+        if not bool(now.any()):
+            return verification
+        take = at[now]
+        verified, kept = verification.verified.clone(), verification.distance.clone()
+        verified[take] = True
+        kept[take] = distance[now].to(kept)
+        return dataclasses.replace(verification, verified=verified, distance=kept)
+
+    def _verified_copies(self, images: torch.Tensor, visibility: torch.Tensor | None,
+                         exclude_object: torch.Tensor | None = None) -> torch.Tensor:
+        """Which of the calibration's copies ``images`` ``(M, 3, S, S)`` verify (``(M,)`` bool), as queries do: the
+        candidates (without ``exclude_object``'s, the impostors'), then the second look
+        (:meth:`_verified_past_occluders`) of those with ``visibility`` (an occluder across them; each copy is its
+        plane's subject, the plane covering it whole)."""
+        verification = self._verify(images, None, exclude_object, visibility=visibility)
+        return self._verified_past_occluders(images, verification.gallery_index, verification.query_H_anchor,
+                                             verification, visibility).verified
 
     def _unrefined_poses(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
                          visibility: torch.Tensor | None) -> tuple[Prediction, Verification]:

@@ -24,7 +24,10 @@ Two statistics (``statistic``):
   a patch counts when at least :data:`PATCH_FILL` of it is visible plane and the anchor is textured there (std
   at least :data:`PATCH_TEXTURE`), and gets its own ``1 - ZNCC``; the mean of the best :data:`PATCH_KEEP` of
   them (a trimmed mean, with at least :data:`MIN_PATCHES` usable patches), times :data:`PATCH_STRICTNESS`, so an
-  occluder the mask missed costs only the patches it covers. A visible share of the plane below ``min_visible``
+  occluder the mask missed costs only the patches it covers. With ``occluder_margin`` (the open set's second look,
+  :meth:`~matl.inference.verification.Verifying._verified_past_occluders`) that many px of the visible plane are
+  left out along the edges of what hides it (not the plane's own edge, :func:`away_from_hidden`): an occluder's drop
+  shadow darkens the print beside it. A visible share of the plane below ``min_visible``
   is not a comparison (1, uncorrelated): such an answer does not verify and is judged by the open set's ratio
   test.
 """
@@ -45,8 +48,8 @@ from numba import njit
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
-           "candidate_distances", "explained_distance", "patch_distances", "verification_distance", "verify_candidates",
-           "weighted_zncc", "zncc"]
+           "away_from_hidden", "candidate_distances", "explained_distance", "hidden_share", "patch_distances",
+           "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -74,6 +77,9 @@ MIN_PATCHES = 4
 PATCH_STRICTNESS = 3.5
 #: ``patches``: smallest visible share of the anchor's plane a comparison needs (``verify_min_visible``)
 MIN_VISIBLE = 0.3
+#: ``patches``: the open set's second look (``verify_occluder_margin``) is for a plane at least this share of which its
+#: crop does not show: a product partly hidden, not a whole one (the benchmark's occluders hide 0.1-0.5)
+SECOND_LOOK_HIDDEN = 0.1
 #: :func:`explained_distance`: the query frame is cut into this many cells per side (docs/decisions.md) ...
 EXPLAINED_CELLS = 10
 #: ... a cell counts when at least this share of it is the query's visible foreground ...
@@ -323,10 +329,32 @@ def _trimmed(distances: torch.Tensor, keep: float, least: int) -> torch.Tensor:
     return torch.where(usable >= least, mean, torch.ones_like(mean))
 
 
+def away_from_hidden(seen: torch.Tensor, plane: torch.Tensor, margin: int) -> torch.Tensor:
+    """``seen`` ``(B, 1, S, S)`` in [0, 1] (a visibility in the anchor's frame) eroded by ``margin`` px from where it
+    falls inside ``plane`` ``(B, 1, S, S)`` bool (an occluder's or the mask's edge), not from the plane's own edge
+    (outside the plane counts as seen): the minimum over a ``2 margin + 1`` square."""
+    around = torch.maximum(seen, (~plane).to(seen.dtype))
+    return -F.max_pool2d(-around, 2 * margin + 1, stride=1, padding=margin)
+
+
+def hidden_share(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
+                 visibility: torch.Tensor | None = None, erode: int = 1) -> torch.Tensor:
+    """``(B,)`` float64: the share of each anchor's plane (:func:`anchor_foreground`) that its query does not show
+    under the pose: outside the query, on its empty (transparent) pixels or where its ``visibility`` ``(B, 1, S, S)``
+    is at most 0.5 (None: everything in the query is visible). ``queries`` ``(B, 3, S, S)``, ``query_H_anchor``
+    ``(B, 3, 3)`` pixel, ``anchors`` ``(B, 3, S, S)``."""
+    _, valid, seen = aligned_queries(queries.float(), query_H_anchor.to(queries.device), True, visibility)
+    plane = anchor_foreground(anchors.float(), erode).to(valid.device)
+    shown = valid if seen is None else valid & (seen > 0.5)
+    area = plane.sum((1, 2, 3)).double()
+    return (1.0 - (plane & shown).sum((1, 2, 3)).double() / area.clamp_min(1.0)).cpu()
+
+
 def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
                           blur_sigma: float = 1.0, erode: int = 1, skip_empty: bool = False,
                           min_coverage: float = MIN_COVERAGE, visibility: torch.Tensor | None = None,
-                          statistic: str = "global", min_visible: float = MIN_VISIBLE) -> torch.Tensor:
+                          statistic: str = "global", min_visible: float = MIN_VISIBLE,
+                          occluder_margin: int = 0) -> torch.Tensor:
     """``1 - ZNCC`` of each query warped into its anchor's frame against the anchor (see the module docstring).
 
     Args:
@@ -342,6 +370,8 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
         statistic: ``global`` (one ZNCC over the plane) or ``patches`` (over the visible part, a trimmed mean of
             per-patch ``1 - ZNCC``); see the module docstring.
         min_visible: ``patches``: the smallest visible share of the anchor's plane that is compared.
+        occluder_margin: ``patches``: px of the visible plane left out along the edges of what hides it
+            (:func:`away_from_hidden`; 0: none).
     Returns:
         ``(B,)`` float64 in [0, 2]: 0 identical up to gain and bias, 1 uncorrelated.
     """
@@ -355,6 +385,8 @@ def verification_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, a
     anchors = anchors.float()
     plane = anchor_foreground(anchors, erode)
     if patches:
+        if seen is not None and occluder_margin > 0:
+            seen = away_from_hidden(seen, plane, int(occluder_margin))
         weight = (plane & valid).float() if seen is None else (plane & valid).float() * seen
         enough = weight.sum((1, 2, 3)) >= min_visible * plane.sum((1, 2, 3)).clamp_min(1)
     else:

@@ -112,3 +112,8 @@ def test_the_calibration_copies_are_partly_occluded() -> None:
     assert stub_recognizer(verify_occluded_copies=0.125).verify_occluded_copies == 0.125
     with pytest.raises(MatlError, match="verify_occluded_copies"):
         stub_recognizer(verify_occluded_copies=1.5)
+    # the second look (verify_occluder_margin) changes the samples of partly hidden copies alone: it is in the key then
+    key = {(share, margin): stub_recognizer(verify_occluded_copies=share,
+                                            verify_occluder_margin=margin).calibration_key()
+           for share in (0.0, 0.5) for margin in (0, 3)}
+    assert key[0.0, 0] == key[0.0, 3] and key[0.5, 0] != key[0.5, 3]

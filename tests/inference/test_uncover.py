@@ -179,3 +179,47 @@ def test_a_held_answer_that_covers_the_crop_is_its_subject() -> None:
     visibility[1, :, :, S // 4:] = 0.0
     assert Passes()._subjects_verified(prepared, pred, queries, held, visibility).verified.tolist() == [
         True, True, False, True]
+
+
+def test_the_second_look_is_for_the_crop_s_subject() -> None:
+    """``verify_occluder_margin``'s second look (:meth:`QueryPasses._second_look`) is asked of the answers that do not
+    verify, of crops with a mask, whose plane covers at least ``uncover`` of what the crop shows (not of a product
+    lying across a part of it), within ``verify_max``, or within ``SUBJECT_MARGIN`` of it for an answer held although
+    its distance is within ``verify_max``."""
+    S = 32
+    whole = torch.full((3, S, S), 200, dtype=torch.uint8)
+    quarter = torch.zeros((3, S, S), dtype=torch.uint8)
+    quarter[:, :, : S // 4] = 200
+    asked = []
+
+    class Passes(QueryPasses):
+        verify_max, uncover, image_size, query_fill, verify_occluder_margin = 0.1, 0.7, S, 1.0, 3
+        foreground = None
+        _planes = (SimpleNamespace(canon_u8=whole), SimpleNamespace(canon_u8=quarter))
+
+        def _verified_past_occluders(self, queries, gallery_index, query_H_anchor, verification, visibility,
+                                     rows=None, within=None):
+            asked.append((rows, within))
+            return verification
+
+    queries = torch.full((4, 3, S, S), 0.5)
+    pred = SimpleNamespace(plane_index=torch.tensor([0, 1, 0, 0]), gallery_index=torch.zeros(4, dtype=torch.long),
+                           query_H_canon=torch.eye(3, dtype=torch.float64).repeat(4, 1, 1),
+                           query_H_anchor=torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
+    verification = Verification(gallery_index=torch.zeros(4, dtype=torch.long),
+                                query_H_anchor=torch.eye(3).repeat(4, 1, 1), feature_distance=torch.zeros(4),
+                                distance=torch.tensor([0.3, 0.3, 0.08, 0.02], dtype=torch.float64),
+                                verified=torch.tensor([False, False, False, True]),
+                                tried=torch.ones(4, dtype=torch.long))
+    rgb = np.zeros((S, S, 3), np.float32)
+    prepared = [(rgb, rgb, np.ones((S, S), np.float32))] * 4  # RGB crops masked by the foreground step
+    visibility = torch.ones(4, 1, S, S)
+    Passes()._second_look(prepared, pred, queries, verification, visibility)
+    assert asked[-1][0] == [0, 2] and asked[-1][1] == pytest.approx([0.1, 0.05])
+    asked.clear()
+    Passes()._second_look([(rgb, rgb, None)] * 4, pred, queries, verification, visibility)  # no mask: not asked
+    Passes()._second_look(prepared, pred, queries, verification, None)  # nothing hidden: not asked
+    off = Passes()
+    off.verify_occluder_margin = 0
+    assert off._second_look(prepared, pred, queries, verification, visibility) is verification
+    assert asked == []

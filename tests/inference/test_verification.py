@@ -70,6 +70,31 @@ def test_an_occluded_query_verifies_on_what_it_shows(tmp_path: Path) -> None:
             stub_recognizer(**bad)
 
 
+def test_the_second_look_leaves_out_an_occluder_s_shadow_and_keeps_the_pose(tmp_path: Path) -> None:
+    """An RGBA query whose alpha leaves a bar out, the print beside the bar darkened by its shadow (deeper nearer it):
+    over everything visible it does not verify; ``verify_occluder_margin`` compares it again without the print along
+    the bar's edges, and it verifies with the pose it had. A whole query is not compared again."""
+    gallery, queries, pose = easy_files(tmp_path)
+    query = read_rgb(queries / "red_box.png").astype(np.float32)
+    alpha = np.full((*query.shape[:2], 1), 255, np.uint8)
+    alpha[:, 60:100] = 0
+    query[:, 45:60] *= np.linspace(1.0, 0.5, 15)[None, :, None]
+    hidden = np.concatenate([query.round().astype(np.uint8), alpha], -1)
+    options = {"threshold": None, "foreground": "none", "verify_max": 0.2}
+    plain = Recognizer(StubModel(pose), SIZE, 1, "stub-model", verify_occluder_margin=0, **options).enrol(gallery)
+    second = Recognizer(StubModel(pose), SIZE, 1, "stub-model", **options).enrol(gallery)
+    assert second.verify_occluder_margin == 5  # the default
+    once, again = plain.predict(hidden), second.predict(hidden)
+    assert once.object == again.object == "red_box"
+    assert again.verification <= second.verify_max < once.verification
+    np.testing.assert_array_equal(again.H, once.H)
+    whole = read_rgb(queries / "red_box.png")
+    assert second.predict(whole).verification == plain.predict(whole).verification
+    for bad in ({"verify_occluder_margin": -1}, {"verify_occluder_margin": 2.5}, {"verify_occluder_margin": True}):
+        with pytest.raises(MatlError, match="verify_occluder_margin"):
+            stub_recognizer(**bad)
+
+
 def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None:
     """A twin with the same colours (c() is the mean colour: the embedding cannot tell them apart) and a band of its
     print mirrored (another flavour's text): the patches' verification passes both; the whole plane's ZNCC does

@@ -15,8 +15,10 @@ from matl.inference.verify import (
     PATCH_CELLS,
     aligned_queries,
     anchor_foreground,
+    away_from_hidden,
     explained_distance,
     gaussian_blur,
+    hidden_share,
     patch_distances,
     verification_distance,
     verify_candidates,
@@ -374,3 +376,47 @@ def test_explained_distance_judges_poses_over_the_query_s_own_pixels() -> None:
     # nothing visible: no cell counts; no query: nothing to judge
     assert float(explained_distance(query, true, anchor, torch.zeros(1, 1, 64, 64))[0]) == 1.0
     assert explained_distance(query[:0], true[:0], anchor[:0]).shape == (0,)
+
+
+def test_the_print_beside_what_hides_it_is_left_out_in_the_second_look() -> None:
+    """An occluder's drop shadow darkens the visible print along its edge, deeper nearer it (no gain per patch explains
+    it), and the blur mixes the hidden side into that edge: ``occluder_margin`` px along the edges of what hides the
+    plane are left out; the plane's own edge is not one. 0 (the default): everything visible counts."""
+    anchor = textured(1, 64).float()
+    pose = torch.eye(3)[None]
+    mask = torch.zeros(1, 1, 64, 64)
+    mask[..., :, 16:40] = 1.0  # hidden left of column 16 and from column 40 on
+    query = anchor * mask
+    shadowed = query.clone()
+    shadowed[..., :, 34:40] *= torch.linspace(1.0, 0.4, 6)
+    args = {"visibility": mask, "statistic": "patches", "skip_empty": True}
+    assert float(verification_distance(shadowed, pose, anchor, **args)[0]) > 0.3
+    assert float(verification_distance(shadowed, pose, anchor, occluder_margin=3, **args)[0]) < 0.01
+    assert float(verification_distance(query, pose, anchor, **args)[0]) > 0.05  # the blur alone
+    assert float(verification_distance(query, pose, anchor, occluder_margin=3, **args)[0]) < 0.01
+    # the erosion: from the hidden columns inward, not from the plane's own edge (rows 5-58 of the eroded plane)
+    plane = anchor_foreground(anchor, 1)
+    kept = away_from_hidden(mask, plane, 3)
+    assert torch.equal(kept[0, 0, 32, 16:40] > 0, torch.arange(16, 40).ge(19) & torch.arange(16, 40).lt(37))
+    assert bool((kept[0, 0, 5:59, 19:37] == 1.0).all())
+    whole = torch.ones(1, 1, 64, 64)
+    assert torch.equal(away_from_hidden(whole, plane, 3), whole)
+
+
+def test_the_hidden_share_of_a_plane() -> None:
+    """What the query does not show of the anchor's plane: under its mask's hidden part, outside the query, on its
+    empty pixels; nothing of a whole plane."""
+    anchor = textured(1, 64).float()
+    pose = torch.eye(3)[None]
+    plane = anchor_foreground(anchor, 1)
+    assert float(hidden_share(anchor, pose, anchor)[0]) == 0.0
+    mask = torch.ones(1, 1, 64, 64)
+    mask[..., :, 40:] = 0.0
+    expected = float((plane[..., :, 40:]).sum() / plane.sum())
+    assert float(hidden_share(anchor, pose, anchor, mask)[0]) == pytest.approx(expected)
+    empty = anchor.clone()
+    empty[..., :, 40:] = 0.0  # transparent: no data
+    assert float(hidden_share(empty, pose, anchor)[0]) == pytest.approx(expected)
+    shifted = torch.tensor([[[1.0, 0.0, 24.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])  # anchor x -> query x + 24
+    grey = torch.full_like(anchor, 0.5)  # shows something everywhere: what falls outside it is hidden
+    assert float(hidden_share(grey, shifted, anchor)[0]) == pytest.approx(expected, abs=0.02)
