@@ -147,7 +147,8 @@ class Match:
         statistic: the open-set statistic of the query (``open_set_statistic``: ``verify``, the distance
             ratio, or ``distance``), compared with the threshold.
         verification: ``1 - ZNCC`` of the query warped by ``H`` onto the answer's anchor (0: identical
-            up to gain and bias per channel; 1: uncorrelated); NaN without verification.
+            up to gain and bias per channel; 1: uncorrelated; the second look's where that verified a partly
+            hidden product, ``verify_occluder_margin``); NaN without verification.
         gallery_image: the gallery file of the plane (None for a plane added as an array).
         alternatives: the next-nearest *other* products (``top_k - 1`` of them), each as a Match of its
             nearest plane (``anchor`` -1, no ``H``, ``score`` NaN).
