@@ -94,17 +94,25 @@ class Verifying:
         if not rows:
             return verification
         at = torch.as_tensor(rows, dtype=torch.long)
+        limit = torch.full((len(at),), self.verify_max, dtype=torch.float64) if within is None else torch.as_tensor(
+            within, dtype=torch.float64)
         images = self._build()[1].images
         index = gallery_index[at.to(gallery_index.device)]
         shown, poses = queries[at.to(queries.device)], query_H_anchor[at.to(query_H_anchor.device)]
         anchors, seen = images[index.to(images.device)], visibility[at.to(visibility.device)]
-        distance = verification_distance(shown, poses, anchors, self.verify_blur, skip_empty=True, visibility=seen,
-                                         statistic="patches", min_visible=self.verify_min_visible,
+        hidden = hidden_share(shown, poses, anchors, seen) >= SECOND_LOOK_HIDDEN  # whole planes: not compared again
+        if not bool(hidden.any()):
+            return verification
+        keep = torch.nonzero(hidden).flatten()
+        distance = verification_distance(shown[keep.to(shown.device)], poses[keep.to(poses.device)],
+                                         anchors[keep.to(anchors.device)], self.verify_blur, skip_empty=True,
+                                         visibility=seen[keep.to(seen.device)], statistic="patches",
+                                         min_visible=self.verify_min_visible,
                                          occluder_margin=self.verify_occluder_margin)
-        limit = torch.full_like(distance, self.verify_max) if within is None else torch.as_tensor(within).to(distance)
-        now = (distance <= limit) & (hidden_share(shown, poses, anchors, seen) >= SECOND_LOOK_HIDDEN)
+        now = distance <= limit[keep].to(distance)
         if not bool(now.any()):
             return verification
+        at = at[keep]
         take = at[now]
         verified, kept = verification.verified.clone(), verification.distance.clone()
         verified[take] = True
