@@ -21,10 +21,10 @@ from matl.data.image_files import fit_to_model
 from matl.geometry import warp_image
 from matl.inference.foreground import pose_mask
 from matl.inference.images import _query_visibility, _upscale, _with_rows
+from matl.inference.recognizer_options import option_default
 from matl.inference.refine import RefinedRecognizer
 from matl.inference.uncover import (
     SUBJECT_MARGIN,
-    SUBJECT_SHARE,
     centre_offset,
     covered_share,
     erased_alpha,
@@ -186,13 +186,9 @@ class QueryPasses:
         :data:`~matl.inference.uncover.SUBJECT_MARGIN` of ``verify_max`` and the answer's plane covers at least
         ``uncover`` of the pixels the crop shows: then it is the crop's subject, not a product lying across a part of
         it (:meth:`_uncovered` explains those away). A crop without a mask stays the open-set statistic's to judge."""
-        rows = [i for i, (masked, rgb, found) in enumerate(prepared)
-                if (found is not None or masked is not rgb) and not bool(verification.verified[i])
-                and float(verification.distance[i]) <= SUBJECT_MARGIN * self.verify_max]
-        if not rows:
-            return verification
-        share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))
-        subject = [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= self.uncover]
+        subject = self._masked_subjects(prepared, pred, queries, visibility, [
+            i for i in range(len(prepared)) if not bool(verification.verified[i])
+            and float(verification.distance[i]) <= SUBJECT_MARGIN * self.verify_max])
         if not subject:
             return verification
         verified = verification.verified.clone()
@@ -203,26 +199,35 @@ class QueryPasses:
                      queries: torch.Tensor, verification: Verification, visibility: torch.Tensor | None
                      ) -> Verification:
         """The open set's second look (:meth:`_verified_past_occluders`, ``verify_occluder_margin``) at the answers
-        that do not verify once posed, of crops with a mask (the foreground step's, an RGBA alpha), where the answer's
-        plane covers at least ``uncover`` (off: :data:`~matl.inference.uncover.SUBJECT_SHARE`) of the pixels the crop
-        shows: the crop's subject, partly hidden. A product lying across the subject covers less of the crop; its
+        that do not verify once posed, of crops with a mask, where the answer is the crop's subject
+        (:meth:`_masked_subjects`), partly hidden. A product lying across the subject covers less of the crop; its
         print along the subject's edges is not left out for it. An answer held unverified although its distance is
         within ``verify_max`` (another product's keypoint pose; a flow pose above ``FlowPose.verifies``) must come
         within :data:`~matl.inference.uncover.SUBJECT_MARGIN` of it, as :meth:`_subjects_verified` asks; the others
         within ``verify_max``."""
         if self.verify_occluder_margin == 0 or visibility is None:
             return verification
-        rows = [i for i, (masked, rgb, found) in enumerate(prepared)
-                if (found is not None or masked is not rgb) and not bool(verification.verified[i])]
-        if not rows:
+        subject = self._masked_subjects(prepared, pred, queries, visibility, [
+            i for i in range(len(prepared)) if not bool(verification.verified[i])])
+        if not subject:
             return verification
-        least = SUBJECT_SHARE if self.uncover is None else self.uncover
-        share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))
-        subject = [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= least]
         within = [SUBJECT_MARGIN * self.verify_max if float(verification.distance[i]) <= self.verify_max
                   else self.verify_max for i in subject]
         return self._verified_past_occluders(queries, pred.gallery_index, pred.query_H_anchor, verification,
                                              visibility, subject, within)
+
+    def _masked_subjects(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], pred: Prediction,
+                         queries: torch.Tensor, visibility: torch.Tensor | None, rows: list[int]) -> list[int]:
+        """Of rows ``rows``, those whose crop has a mask (the foreground step's, an RGBA alpha) and whose answered
+        plane covers at least ``uncover`` (off: ``uncover``'s default) of the pixels the crop shows: the crop's
+        subject, its hidden part included, where a product lying across it covers less."""
+        # prepared[i] is (masked, rgb, found): a mask the foreground step found, or the query's own alpha
+        rows = [i for i in rows if prepared[i][2] is not None or prepared[i][0] is not prepared[i][1]]
+        if not rows:
+            return []
+        least = option_default("uncover") if self.uncover is None else self.uncover
+        share = covered_share(self._answered_planes(pred, rows), self._shown(prepared, queries, visibility, rows))
+        return [i for i, covered in zip(rows, share.tolist(), strict=True) if covered >= least]
 
     def _shown(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], queries: torch.Tensor,
                visibility: torch.Tensor | None, rows: list[int]) -> torch.Tensor:

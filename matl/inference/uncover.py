@@ -40,9 +40,6 @@ MIN_OVERLAP = 20
 #: verification distance is within this share of ``verify_max``: the keypoints chose a product the embedding did not
 #: put first, so its print must match with a margin (docs/decisions.md)
 SUBJECT_MARGIN = 0.5
-#: the share of the crop's shown pixels a plane covers to be the crop's subject where ``uncover`` is off (None): the
-#: open set's second look (``verify_occluder_margin``) is for a crop's subject alone; ``uncover``'s default
-SUBJECT_SHARE = 0.7
 
 
 def shown_pixels(queries: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
