@@ -14,9 +14,9 @@ photos no training catalog uses, a share of the products in look-alike families)
    of its other members is enrolled too), every query's in ``truth_all.jsonl``.
 3. *Methods* (``catalog.methods``): predict's code on the files (:class:`~matl.evaluation.unseen_methods.MethodRun`),
    MATL with the open set on (``threshold``, ``auto``: calibrated on the gallery) up to
-   ``catalog.calibrate_max_products`` products and a closed set above (the open set needs the gallery's
-   calibration, a given threshold too for its answers' scores; it poses and verifies 8 warped copies of every
-   plane, all at once: at 10,000 products it ran out of a 23 GB machine's memory); keypoint baselines
+   ``catalog.calibrate_max_products`` products (every size by default) and a closed set above (the open set needs
+   the gallery's calibration, a given threshold too for its answers' scores; it poses and verifies 8 warped copies
+   of each of at most ``calibration_planes`` planes); keypoint baselines
    answer a closed set and are predicted up to ``catalog.keypoint_max_products`` (their ``query_ms`` at every
    size).
 4. *Scores*: ``rec_acc`` (enrolled queries answered with the right product, as predict answers them),

@@ -199,6 +199,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         open_set_statistic: ``verify``, ``verify_or_ratio``, ``ratio`` or ``distance`` (see the module docstring).
         open_set_quantile: with ``auto``, the quantile of the genuine calibration sample used.
         calibration_warps: warped copies per plane for the calibration.
+        calibration_planes: the calibration's copies are of at most this many planes, the same ones each time (those
+            whose names hash lowest): a warehouse catalogue's threshold from a sample of its planes, each copy still
+            compared with the whole gallery, at a bounded cost (None: every plane).
         verify_top_k: nearest anchors verified per query, until one verifies (0: no verification; then
             ``verify`` is ``ratio``). Models without an STN have no pose to verify: none.
         verify_max: the largest ``1 - ZNCC`` that verifies a pose.
@@ -298,6 +301,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                                                                 settings.verify_blur)
         self.open_set_quantile = settings.open_set_quantile
         self.calibration_warps = settings.calibration_warps
+        self.calibration_planes = settings.calibration_planes
         self.gallery_fill, self.query_fill = settings.gallery_fill, settings.query_fill
         self.batch_size = settings.batch_size
         self.foreground: ForegroundStep | None = settings.foreground

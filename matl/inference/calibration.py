@@ -108,9 +108,20 @@ class OpenSetCalibration:
         canon = torch.stack([p.canon_u8 for p in planes]).float().div(255.0)
         return warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
 
-    def _calibration_features(self) -> None:
-        """Features of warped copies of every plane that has none yet (the training warps; once per plane)."""
-        missing = [p for p in self._planes if p.calibration is None]
+    def _calibration_sample(self) -> list[int]:
+        """The gallery positions of the planes whose copies the calibration takes, in gallery order: every plane, or
+        with ``calibration_planes`` the so many whose names hash lowest (the same planes each time, whatever the
+        enrolment order)."""
+        count, limit = len(self._planes), self.calibration_planes
+        if limit is None or count <= limit:
+            return list(range(count))
+        keys = [zlib.crc32(f"{p.object}/{p.name}/calibration".encode()) for p in self._planes]
+        return sorted(sorted(range(count), key=lambda i: (keys[i], i))[:limit])
+
+    def _calibration_features(self, sample: list[int]) -> None:
+        """Features of warped copies of every plane of ``sample`` (gallery positions) that has none yet (the
+        training warps; once per plane)."""
+        missing = [self._planes[i] for i in sample if self._planes[i].calibration is None]
         inner = self._gallery_recognizer() if missing else None
         for start in range(0, len(missing), CALIBRATION_PLANES):  # so many planes' copies in memory at a time
             planes = missing[start:start + CALIBRATION_PLANES]
@@ -129,20 +140,22 @@ class OpenSetCalibration:
         return ratio
 
     def calibration(self) -> dict[str, torch.Tensor]:
-        """Genuine and impostor samples of the open-set statistic (see the module docstring), the planes'
-        copies taken :data:`CALIBRATION_PLANES` planes at a time."""
+        """Genuine and impostor samples of the open-set statistic (see the module docstring) of the copies of the
+        planes of :meth:`_calibration_sample`, taken :data:`CALIBRATION_PLANES` planes at a time."""
         with self._lock:
-            self._calibration_features()
+            sample = self._calibration_sample()
+            self._calibration_features(sample)
             owners = torch.tensor(self._plane_objects())
-            parts = [self._calibration_part(start, owners)
-                     for start in range(0, len(self._planes), CALIBRATION_PLANES)]
+            parts = [self._calibration_part(sample[start:start + CALIBRATION_PLANES], start, owners)
+                     for start in range(0, len(sample), CALIBRATION_PLANES)]
             return {name: torch.cat([part[name] for part in parts]) for name in ("genuine", "impostor")}
 
-    def _calibration_part(self, first: int, owners: torch.Tensor) -> dict[str, torch.Tensor]:
-        """:meth:`calibration`'s samples of the copies of planes ``first`` to ``first + CALIBRATION_PLANES``."""
-        planes = self._planes[first:first + CALIBRATION_PLANES]
+    def _calibration_part(self, positions: list[int], first: int, owners: torch.Tensor) -> dict[str, torch.Tensor]:
+        """:meth:`calibration`'s samples of the copies of the planes at gallery ``positions``, the sample's planes
+        ``first`` to ``first + len(positions)``."""
+        planes = [self._planes[i] for i in positions]
         features = torch.cat([p.calibration for p in planes])
-        own = owners[first:first + len(planes)].repeat_interleave(self.calibration_warps)
+        own = owners[positions].repeat_interleave(self.calibration_warps)
         d, objects = self._object_distances(features)               # (M, O)
         # verify: the copies are posed and verified as queries are (against the whole gallery; the
         # impostors against the gallery without their product); verify_or_ratio: the ratio's samples
@@ -210,6 +223,8 @@ class OpenSetCalibration:
                               if self._verifying() else None),
                    "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
                    "search": self.options()["search"], "device": self.device.type, "variant": self._variant}
+        if len(self._planes) > (self.calibration_planes or len(self._planes)):  # a sample of the planes' copies
+            options["calibration_planes"] = self.calibration_planes
         return json.dumps(options, sort_keys=True, default=str) + "|planes:" + digest.hexdigest()
 
     def calibration_cache_file(self) -> Path | None:

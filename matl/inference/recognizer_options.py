@@ -24,7 +24,7 @@ from matl.inference.refine import PhotometricRefiner
 from matl.inference.runtime import RUNTIMES
 from matl.inference.verify import VERIFY_STATISTICS
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
-from matl.utils.config import is_number
+from matl.utils.config import is_int, is_number
 from matl.utils.errors import MatlError
 
 __all__ = ["CONFIG_OPTIONS", "OPEN_SET_STATISTICS", "POSE_JUDGES", "REFINE_CHECKS", "RecognizerOptions",
@@ -86,6 +86,7 @@ class RecognizerOptions:
     open_set_statistic: str = "verify"
     open_set_quantile: float = 0.94
     calibration_warps: int = 8
+    calibration_planes: int | None = 2000
     verify_top_k: int = 8
     verify_max: float = 0.1
     verify_blur: float = 1.0
@@ -162,6 +163,11 @@ class RecognizerOptions:
         self.verify_blur, self.verify_min_visible = float(self.verify_blur), float(self.verify_min_visible)
         self.open_set_quantile = float(self.open_set_quantile)
         self.calibration_warps = int(self.calibration_warps)
+        if self.calibration_planes is not None:
+            if not is_int(self.calibration_planes) or int(self.calibration_planes) < 1:
+                raise MatlError(f"calibration_planes={self.calibration_planes!r} is invalid: use a number of planes "
+                                ">= 1 (e.g. 2000), or None (every plane)")
+            self.calibration_planes = int(self.calibration_planes)
         self.gallery_fill, self.query_fill = float(self.gallery_fill), float(self.query_fill)
         self.batch_size = int(self.batch_size)
         self.foreground = foreground_option(self.foreground)
@@ -180,8 +186,8 @@ class RecognizerOptions:
 #: the keys of predict's config (and matl.unseen's) passed to the Recognizer under their own name: the open set,
 #: verification and the pose stages; a key a config leaves out takes :class:`RecognizerOptions`' default, the one
 #: place the defaults are written in code (conf/predict.yaml and conf/unseen.yaml write the same values)
-CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "verify_top_k", "verify_max", "verify_blur",
-                  "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies",
+CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "calibration_planes", "verify_top_k", "verify_max",
+                  "verify_blur", "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies",
                   "verify_occluder_margin", "refine_check",
                   "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "uncover")
 

@@ -78,6 +78,36 @@ def test_a_gallery_calibrated_in_parts_gets_the_samples_it_gets_whole(tmp_path: 
         assert torch.equal(part[0], out[rows]) and torch.equal(part[1], visibility[rows])
 
 
+def test_a_large_gallery_is_calibrated_on_a_sample_of_its_planes(tmp_path: Path) -> None:
+    gallery, _, _ = make_files(tmp_path)
+    rec = stub_recognizer(verify_occluded_copies=0.5).enrol(gallery, cache=False)
+    planes = len(rec.planes)
+    assert planes >= 3 and rec.calibration_planes == 2000  # the default: every plane of a gallery this small
+    whole = rec.calibration()
+    small = stub_recognizer(verify_occluded_copies=0.5, calibration_planes=2).enrol(gallery, cache=False)
+    sample = small._calibration_sample()
+    assert len(sample) == 2 and sample == sorted(sample)
+    part = small.calibration()
+    assert len(part["genuine"]) == 2 * small.calibration_warps
+    # each sampled copy is the whole calibration's (compared with the whole gallery), the planes taken in parts or not
+    rows = torch.cat([torch.arange(i * rec.calibration_warps, (i + 1) * rec.calibration_warps) for i in sample])
+    assert torch.equal(part["genuine"], whole["genuine"][rows])
+    # the same planes whatever the enrolment order: chosen by their names
+    backwards = stub_recognizer(calibration_planes=2)
+    for plane in reversed(small._planes):
+        backwards.add(plane.object, plane.name, plane.path)
+    assert sorted(small.planes[i] for i in sample) == sorted(
+        backwards.planes[i] for i in backwards._calibration_sample())
+    # the sample size is in the key where it applies; a gallery no larger than it keeps the key it had without it
+    assert small.calibration_key() != rec.calibration_key()
+    assert stub_recognizer(calibration_planes=planes).enrol(gallery, cache=False).calibration_key() == \
+        stub_recognizer(calibration_planes=None).enrol(gallery, cache=False).calibration_key()
+    for bad in (0, -3, 2.5, "many"):
+        with pytest.raises(MatlError, match="calibration_planes=") as info:
+            stub_recognizer(calibration_planes=bad)
+        assert "\n" not in str(info.value)
+
+
 def test_the_calibration_copies_are_partly_occluded() -> None:
     S, W = 32, 8
     planes = 4

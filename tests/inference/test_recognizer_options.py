@@ -17,7 +17,8 @@ from tests.conftest import compose_config
 from tests.inference.test_api import SIZE, StubModel, exact_model_pose, stub_recognizer
 
 SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_option", "open_set_statistic",
-            "open_set_quantile", "calibration_warps", "verify_top_k", "verify_max", "verify_blur", "verify_refine",
+            "open_set_quantile", "calibration_warps", "calibration_planes", "verify_top_k", "verify_max", "verify_blur",
+            "verify_refine",
             "verify_statistic", "verify_min_visible", "refine_check", "keypoint_pose", "gallery_fill", "query_fill",
             "batch_size",
             "foreground")
