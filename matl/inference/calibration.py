@@ -152,7 +152,8 @@ class OpenSetCalibration:
 
     def _calibration_part(self, positions: list[int], first: int, owners: torch.Tensor) -> dict[str, torch.Tensor]:
         """:meth:`calibration`'s samples of the copies of the planes at gallery ``positions``, the sample's planes
-        ``first`` to ``first + len(positions)``."""
+        ``first`` to ``first + len(positions)`` (the occluded copies take their turns over the sample: over the whole
+        gallery when every plane is in it)."""
         planes = [self._planes[i] for i in positions]
         features = torch.cat([p.calibration for p in planes])
         own = owners[positions].repeat_interleave(self.calibration_warps)

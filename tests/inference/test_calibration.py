@@ -80,11 +80,11 @@ def test_a_gallery_calibrated_in_parts_gets_the_samples_it_gets_whole(tmp_path: 
 
 def test_a_large_gallery_is_calibrated_on_a_sample_of_its_planes(tmp_path: Path) -> None:
     gallery, _, _ = make_files(tmp_path)
-    rec = stub_recognizer(verify_occluded_copies=0.5).enrol(gallery, cache=False)
+    rec = stub_recognizer().enrol(gallery, cache=False)
     planes = len(rec.planes)
     assert planes >= 3 and rec.calibration_planes == 2000  # the default: every plane of a gallery this small
     whole = rec.calibration()
-    small = stub_recognizer(verify_occluded_copies=0.5, calibration_planes=2).enrol(gallery, cache=False)
+    small = stub_recognizer(calibration_planes=2).enrol(gallery, cache=False)
     sample = small._calibration_sample()
     assert len(sample) == 2 and sample == sorted(sample)
     part = small.calibration()
