@@ -108,15 +108,19 @@ class OpenSetCalibration:
         canon = torch.stack([p.canon_u8 for p in planes]).float().div(255.0)
         return warp_image(canon.repeat_interleave(self.calibration_warps, 0), H).to(self.device)
 
+    def _calibration_sampled(self) -> bool:
+        """Whether the gallery has more planes than ``calibration_planes``: its calibration takes a sample of them."""
+        return self.calibration_planes is not None and len(self._planes) > self.calibration_planes
+
     def _calibration_sample(self) -> list[int]:
         """The gallery positions of the planes whose copies the calibration takes, in gallery order: every plane, or
         with ``calibration_planes`` the so many whose names hash lowest (the same planes each time, whatever the
         enrolment order)."""
-        count, limit = len(self._planes), self.calibration_planes
-        if limit is None or count <= limit:
+        count = len(self._planes)
+        if not self._calibration_sampled():
             return list(range(count))
         keys = [zlib.crc32(f"{p.object}/{p.name}/calibration".encode()) for p in self._planes]
-        return sorted(sorted(range(count), key=lambda i: (keys[i], i))[:limit])
+        return sorted(sorted(range(count), key=lambda i: (keys[i], i))[:self.calibration_planes])
 
     def _calibration_features(self, sample: list[int]) -> None:
         """Features of warped copies of every plane of ``sample`` (gallery positions) that has none yet (the
@@ -224,7 +228,7 @@ class OpenSetCalibration:
                               if self._verifying() else None),
                    "refiner": refiner, "quantize": self.quantize, "runtime": self.runtime,
                    "search": self.options()["search"], "device": self.device.type, "variant": self._variant}
-        if len(self._planes) > (self.calibration_planes or len(self._planes)):  # a sample of the planes' copies
+        if self._calibration_sampled():  # a sample of the planes' copies
             options["calibration_planes"] = self.calibration_planes
         return json.dumps(options, sort_keys=True, default=str) + "|planes:" + digest.hexdigest()
 

@@ -141,7 +141,7 @@ class RecognizerOptions:
                             "calibration's copies in [0, 1] (0: whole copies)")
         self.verify_occluded_copies = float(self.verify_occluded_copies)
         margin = self.verify_occluder_margin
-        if isinstance(margin, bool) or not isinstance(margin, int) or not 0 <= margin <= 16:
+        if not is_int(margin) or not 0 <= margin <= 16:
             raise MatlError(f"verify_occluder_margin={margin!r} is invalid: use px in 0-16 (0: no second look)")
         if self.refine_check not in REFINE_CHECKS:
             raise MatlError(f"refine_check={self.refine_check!r} is invalid: use {' or '.join(REFINE_CHECKS)}")
