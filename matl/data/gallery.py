@@ -29,6 +29,9 @@ class Gallery:
     plane_names: list[str]
     #: (anchor_H_canon, its float64 copy): converted once, again only when anchor_H_canon is replaced
     _canon64: tuple[torch.Tensor, torch.Tensor] | None = field(default=None, init=False, repr=False, compare=False)
+    #: (images, cell, their coarse copy and plane share): :meth:`coarse_images`, pooled once per ``images``
+    _coarse: tuple[torch.Tensor, int, torch.Tensor, torch.Tensor] | None = field(default=None, init=False, repr=False,
+                                                                                compare=False)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -46,6 +49,19 @@ class Gallery:
         if self._canon64 is None or self._canon64[0] is not self.anchor_H_canon:
             self._canon64 = (self.anchor_H_canon, self.anchor_H_canon.double())
         return self._canon64[1]
+
+    def coarse_images(self, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The anchors averaged over ``cell`` x ``cell`` pixel cells, ``(G, 3, S / cell, S / cell)`` float32, and each
+        cell's share of plane pixels (any channel non-zero) ``(G, 1, S / cell, S / cell)``; pooled once per ``images``
+        (verification's shortlist compares many anchors per query at this scale)."""
+        held = self._coarse
+        if held is None or held[0] is not self.images or held[1] != cell:
+            images = self.images.float()
+            plane = (images.amax(1, keepdim=True) > 0).float()
+            held = (self.images, cell, torch.nn.functional.avg_pool2d(images, cell),
+                    torch.nn.functional.avg_pool2d(plane, cell))
+            self._coarse = held
+        return held[2], held[3]
 
     def to(self, device: torch.device | str) -> Gallery:
         return Gallery(self.images.to(device), self.object_index.to(device), self.plane_index.to(device),

@@ -18,7 +18,10 @@ frame, its zero-mean normalised cross-correlation (ZNCC) with the anchor over th
 near 1 when the product and the pose are right. The nearest anchor is verified first; when ``1 -
 ZNCC`` exceeds ``verify_max`` the next-nearest anchors (up to ``verify_top_k``, any product, plane
 or rotation, each posed by the STN and the alignment stage) are tried in turn, and the first that
-verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays. The
+verifies becomes the answer (object, plane, anchor, ``H``); when none does, the nearest stays. With
+``verify_shortlist`` (default 64) the anchors among the 64 nearest whose pixels at the STN's pose look most like
+the query are tried too, at a stricter bar, and the candidate that verifies closest wins: in a warehouse catalogue
+the right product is often a few to tens of places down the features' order. The
 query's empty pixels (all channels 0: the transparent part of an RGBA query) are not compared. With
 ``verify_statistic=patches`` (default) the comparison is over the part of the plane the query shows: its mask
 (an RGBA alpha, the foreground step's) travels with it as its visibility, warped by the pose, and an
@@ -204,6 +207,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             compared with the whole gallery, at a bounded cost (None: every plane).
         verify_top_k: nearest anchors verified per query, until one verifies (0: no verification; then
             ``verify`` is ``ratio``). Models without an STN have no pose to verify: none.
+        verify_shortlist: a query whose nearest anchor does not verify also meets the few anchors among its this
+            many nearest whose pixels, warped by the STN's pose, look most like it (a warehouse catalogue's right
+            product can be 3rd to 50th nearest by the features), each verifying within a stricter bar; of the
+            candidates that verify the closest wins (:func:`~matl.inference.verify.verify_candidates`). 0 (or at
+            most ``verify_top_k``): the ``verify_top_k`` nearest alone, the first that verifies winning.
         verify_max: the largest ``1 - ZNCC`` that verifies a pose.
         verify_blur: Gaussian smoothing of both images before the comparison, px.
         verify_refine: pose each further candidate by the fast refinement against it (``refiner.start``'s
@@ -299,6 +307,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.open_set_statistic = settings.open_set_statistic
         self.verify_top_k, self.verify_max, self.verify_blur = (settings.verify_top_k, settings.verify_max,
                                                                 settings.verify_blur)
+        self.verify_shortlist = settings.verify_shortlist
         self.open_set_quantile = settings.open_set_quantile
         self.calibration_warps = settings.calibration_warps
         self.calibration_planes = settings.calibration_planes

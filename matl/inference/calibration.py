@@ -221,8 +221,9 @@ class OpenSetCalibration:
         options = {"format": CALIBRATION_FORMAT, "model": self.model_id, "image_size": self.image_size,
                    "num_anchors": self.num_anchors, "statistic": self.open_set_statistic,
                    "warps": self.calibration_warps, "homography": getattr(self.model, "homography_config", None),
-                   "verify": ([self.verify_top_k, self.verify_max, self.verify_blur, self.verify_refine,
-                               self.verify_statistic, self.verify_min_visible, self.verify_occluded_copies]
+                   "verify": ([self.verify_top_k, self.verify_shortlist, self.verify_max, self.verify_blur,
+                               self.verify_refine, self.verify_statistic, self.verify_min_visible,
+                               self.verify_occluded_copies]
                               # the second look changes only copies with an occluder across them
                               + ([self.verify_occluder_margin] if self.verify_occluded_copies > 0 else [])
                               if self._verifying() else None),

@@ -88,6 +88,7 @@ class RecognizerOptions:
     calibration_warps: int = 8
     calibration_planes: int | None = 2000
     verify_top_k: int = 8
+    verify_shortlist: int = 64
     verify_max: float = 0.1
     verify_blur: float = 1.0
     verify_refine: bool = True
@@ -124,6 +125,10 @@ class RecognizerOptions:
         top_k = self.verify_top_k
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 0:
             raise MatlError(f"verify_top_k={top_k!r} is invalid: use an integer >= 0 (0: no verification)")
+        if not is_int(self.verify_shortlist) or int(self.verify_shortlist) < 0:
+            raise MatlError(f"verify_shortlist={self.verify_shortlist!r} is invalid: use a number of anchors >= 0 "
+                            "(e.g. 64; at most verify_top_k: no shortlist)")
+        self.verify_shortlist = int(self.verify_shortlist)
         if not is_number(self.verify_max) or not 0.0 <= self.verify_max <= 2.0:
             raise MatlError(f"verify_max={self.verify_max!r} is invalid: use a 1 - ZNCC level in [0, 2] (e.g. 0.1)")
         if not is_number(self.verify_blur) or not 0.0 <= self.verify_blur <= 10.0:
@@ -186,7 +191,8 @@ class RecognizerOptions:
 #: the keys of predict's config (and matl.unseen's) passed to the Recognizer under their own name: the open set,
 #: verification and the pose stages; a key a config leaves out takes :class:`RecognizerOptions`' default, the one
 #: place the defaults are written in code (conf/predict.yaml and conf/unseen.yaml write the same values)
-CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "calibration_planes", "verify_top_k", "verify_max",
+CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "calibration_planes", "verify_top_k", "verify_shortlist",
+                  "verify_max",
                   "verify_blur", "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies",
                   "verify_occluder_margin", "refine_check",
                   "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "uncover")

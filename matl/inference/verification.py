@@ -60,7 +60,8 @@ class Verifying:
                                             skip_empty=True, candidate_pose=pose, first_refined=first_refined,
                                             visibility=None if visibility is None else visibility[i:i + step],
                                             upscale=None if upscale is None else upscale[i:i + step],
-                                            statistic=self.verify_statistic, min_visible=self.verify_min_visible))
+                                            statistic=self.verify_statistic, min_visible=self.verify_min_visible,
+                                            shortlist=self.verify_shortlist))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 

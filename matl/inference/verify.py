@@ -48,8 +48,8 @@ from numba import njit
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
-           "away_from_hidden", "candidate_distances", "explained_distance", "hidden_share", "patch_distances",
-           "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
+           "away_from_hidden", "candidate_distances", "coarse_similarity", "explained_distance", "hidden_share",
+           "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -70,6 +70,12 @@ PATCH_FILL = 0.5
 PATCH_TEXTURE = 0.02
 #: ``patches``: the share of the usable patches, best first, whose ``1 - ZNCC`` is averaged
 PATCH_KEEP = 0.5
+#: ``verify_shortlist``: the shortlist's anchors are compared with the query averaged over cells of this many px a side
+COARSE_CELL = 4
+#: ``verify_shortlist``: candidates taken from the shortlist by their pixels, beyond the ``top_k`` nearest
+SHORTLIST_EXTRA = 4
+#: ``verify_shortlist``: the largest ``1 - ZNCC`` that verifies a candidate taken by its pixels (docs/decisions.md)
+SHORTLIST_VERIFY_MAX = 0.06
 #: ``patches``: fewest usable patches the patches' part needs (a smaller plane is judged by its ZNCC alone)
 MIN_PATCHES = 4
 #: ``patches``: the patches' trimmed mean counts this many times over (it must be this much lower than ``verify_max``:
@@ -476,8 +482,10 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
                       exclude_object: torch.Tensor | None = None, skip_empty: bool = False,
                       candidate_pose: CandidatePose | None = None, first_refined: bool = True,
                       visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None,
-                      statistic: str = "global", min_visible: float = MIN_VISIBLE) -> Verification:
-    """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins.
+                      statistic: str = "global", min_visible: float = MIN_VISIBLE, shortlist: int = 0
+                      ) -> Verification:
+    """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins
+    (with ``shortlist``: more candidates, and the closest that verifies wins).
 
     A candidate is posed as the recognizer poses its nearest anchor: the STN's ``query_H_anchor``, then
     the alignment stage against that candidate (when the model has one), or by ``candidate_pose`` (a refinement
@@ -509,6 +517,11 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
         upscale: ``(Q,)`` how many times each query's file was enlarged to the model's size, for
             ``candidate_pose`` (None: not known).
         statistic, min_visible: as :func:`verification_distance`'s.
+        shortlist: ``verify_shortlist``: when above ``top_k``, a query whose nearest candidate does not verify
+            also meets the :data:`SHORTLIST_EXTRA` anchors among its ``shortlist`` nearest (beyond the ``top_k``)
+            whose pixels at the STN's pose look most like it (:func:`coarse_similarity`), each verifying within
+            :data:`SHORTLIST_VERIFY_MAX` (one of many tried: a stricter bar); of the candidates that verify, the
+            one with the lowest distance wins. 0 (or at most ``top_k``): the features' order alone.
     """
     g = recognizer.gallery
     n = len(queries)
@@ -544,6 +557,21 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
         d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
     k = min(top_k - (0 if again else 1), d.shape[1])
     cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
+    limit = torch.full((len(todo), k), verify_max, dtype=torch.float64)  # (T, k) each candidate's verify_max
+    widened = shortlist > top_k
+    if widened:  # more candidates: the shortlist's others whose pixels at the STN's pose look most alike
+        short_d, short = d.topk(min(shortlist, d.shape[1]), dim=1, largest=False)  # (T, m) nearest first
+        pooled, plane = g.coarse_images(COARSE_CELL)
+        at = short.to(pooled.device)
+        score = coarse_similarity(warped, pooled[at], plane[at], COARSE_CELL).to(short_d.device)
+        score[:, :k] = -float("inf")                                          # already candidates
+        score = score.masked_fill(~torch.isfinite(short_d), -float("inf"))    # excluded products
+        found, pick = score.topk(min(SHORTLIST_EXTRA, short.shape[1] - k), dim=1)
+        cand_d = torch.cat([cand_d, short_d.gather(1, pick).masked_fill(~torch.isfinite(found), float("inf"))], 1)
+        cand = torch.cat([cand, short.gather(1, pick)], 1)
+        limit = torch.cat([limit, torch.full(pick.shape, min(verify_max, SHORTLIST_VERIFY_MAX), dtype=torch.float64)],
+                          1)
+        k = cand.shape[1]
     usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
     t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
     anchors = g.images[cand[t, j]]
@@ -558,9 +586,11 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, visibility=seen_t, **compare)
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
     poses[t, j] = (H if answer_H is None else answer_H).cpu().double()
-    ok = v <= verify_max
-    rows = torch.nonzero(ok.any(1)).flatten()      # the first that verifies, nearest first
-    col = ok[rows].to(torch.int8).argmax(1)
+    ok = v <= limit
+    rows = torch.nonzero(ok.any(1)).flatten()
+    # candidates of two orders: the one that verifies closest; of one: the first that verifies, nearest first
+    col = (v[rows].masked_fill(~ok[rows], float("inf")).argmin(1) if widened
+           else ok[rows].to(torch.int8).argmax(1))
     at = todo[rows]
     index[at] = cand[rows, col].cpu()
     pose[at] = poses[rows, col]
@@ -568,6 +598,27 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     distance[at] = v[rows, col]
     tried[todo] += usable.sum(1)
     return Verification(index, pose, feature_distance, distance, distance <= verify_max, tried)
+
+
+def coarse_similarity(warped: torch.Tensor, anchors: torch.Tensor, plane: torch.Tensor, cell: int) -> torch.Tensor:
+    """``(T, M)`` ZNCC of each of ``warped`` ``(T, 3, S, S)`` (queries in the anchor frame at the STN's pose) with each
+    of its ``M`` shortlisted anchors ``(T, M, 3, S / cell, S / cell)`` (:meth:`Gallery.coarse_images`, plane share
+    ``plane`` ``(T, M, 1, S / cell, S / cell)``), both averaged over ``cell`` px cells: over the cells that are
+    whole plane and where the query has data, per channel a gain and a bias left out; -1 where fewer than
+    :data:`MIN_PIXELS` cells are compared."""
+    pooled = F.avg_pool2d(warped.float(), cell)                                   # (T, 3, s, s)
+    data = F.avg_pool2d((warped.amax(1, keepdim=True) > 0).float(), cell)        # (T, 1, s, s)
+    mask = ((plane > 0.99) & (data[:, None] > 0.99)).float()                     # (T, M, 1, s, s)
+    q = pooled[:, None].expand_as(anchors)
+    count = mask.sum((2, 3, 4)).clamp(min=1.0)                                  # (T, M)
+    n = mask.sum((3, 4)).clamp(min=1.0)                                         # (T, M, 1)
+
+    def centred(x: torch.Tensor) -> torch.Tensor:
+        return (x - (x * mask).sum((3, 4), keepdim=True) / n[..., None, None]) * mask
+
+    a, b = centred(anchors), centred(q)
+    corr = (a * b).sum((2, 3, 4)) / ((a * a).sum((2, 3, 4)) * (b * b).sum((2, 3, 4))).sqrt().clamp(min=1e-12)
+    return corr.masked_fill(count < MIN_PIXELS, -1.0)
 
 
 def candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None

@@ -17,11 +17,9 @@ from tests.conftest import compose_config
 from tests.inference.test_api import SIZE, StubModel, exact_model_pose, stub_recognizer
 
 SETTINGS = ("device", "refiner", "quantize", "runtime", "search", "threshold_option", "open_set_statistic",
-            "open_set_quantile", "calibration_warps", "calibration_planes", "verify_top_k", "verify_max", "verify_blur",
-            "verify_refine",
-            "verify_statistic", "verify_min_visible", "refine_check", "keypoint_pose", "gallery_fill", "query_fill",
-            "batch_size",
-            "foreground")
+            "open_set_quantile", "calibration_warps", "calibration_planes", "verify_top_k", "verify_shortlist",
+            "verify_max", "verify_blur", "verify_refine", "verify_statistic", "verify_min_visible", "refine_check",
+            "keypoint_pose", "gallery_fill", "query_fill", "batch_size", "foreground")
 
 
 def test_the_defaults_are_resolved_once() -> None:
@@ -54,7 +52,8 @@ def test_a_recognizer_from_options_is_the_recognizer_from_keyword_arguments() ->
 
 def test_bad_values_are_the_keyword_arguments_errors() -> None:
     for bad in ({"quantize": "int4"}, {"runtime": "tvm"}, {"threshold": "high"}, {"refine": "yes"},
-                {"search": "annoy"}, {"open_set_statistic": "zncc"}, {"verify_top_k": True}, {"verify_max": 3.0},
+                {"search": "annoy"}, {"open_set_statistic": "zncc"}, {"verify_top_k": True}, {"verify_shortlist": -1},
+                {"verify_shortlist": 2.5}, {"verify_max": 3.0},
                 {"verify_blur": -1.0}, {"verify_refine": 1}, {"verify_statistic": "median"},
                 {"verify_min_visible": 1.5}, {"refine_check": "loss"}, {"foreground": "magic"},
                 {"keypoint_pose": "sometimes"}, {"keypoint_pose": 3}):

@@ -4,18 +4,21 @@ visible part, patch by patch), candidates tried in order."""
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import pytest
 import torch
 
+from matl.data.gallery import Gallery
 from matl.inference.verify import (
     MIN_PATCHES,
     MIN_PIXELS,
     PATCH_CELLS,
+    SHORTLIST_EXTRA,
+    SHORTLIST_VERIFY_MAX,
     aligned_queries,
     anchor_foreground,
     away_from_hidden,
+    coarse_similarity,
     explained_distance,
     gaussian_blur,
     hidden_share,
@@ -108,7 +111,10 @@ class StubRecognizer:
 
     def __init__(self, anchors: torch.Tensor, objects: list[int], gallery_features: torch.Tensor,
                  query_features: torch.Tensor) -> None:
-        self.gallery = SimpleNamespace(images=anchors, object_index=torch.tensor(objects))
+        n = len(anchors)
+        self.gallery = Gallery(anchors, torch.tensor(objects), torch.arange(n), torch.zeros(n, dtype=torch.long),
+                               torch.eye(3).repeat(n, 1, 1), [str(o) for o in sorted(set(objects))],
+                               [str(i) for i in range(n)])
         self.gallery_features, self.query_features, self.align = gallery_features, query_features, None
 
     def gallery_distances(self, features: torch.Tensor) -> torch.Tensor:
@@ -141,6 +147,60 @@ def test_candidates_are_tried_nearest_first_until_one_verifies() -> None:
     first = (torch.tensor([2, 1]), torch.eye(3).repeat(2, 1, 1), torch.tensor([5.0, 5.0]))
     v = verify_candidates(rec, queries, 3, 0.1, first=first)
     assert v.tried.tolist() == [1, 3] and v.gallery_index.tolist() == [2, 1] and v.verified.tolist() == [True, False]
+
+
+def test_coarse_similarity_of_a_query_with_its_shortlisted_anchors() -> None:
+    anchors = torch.cat([textured(seed) for seed in range(20, 26)])                 # (6, 3, S, S)
+    pooled = torch.nn.functional.avg_pool2d(anchors, 4)[None]                        # (1, 6, 3, S/4, S/4)
+    plane = torch.nn.functional.avg_pool2d((anchors.amax(1, keepdim=True) > 0).float(), 4)[None]
+    query = 1.7 * anchors[3:4] + 0.05                                               # a gain and a bias: the same print
+    score = coarse_similarity(query, pooled, plane, 4)
+    assert score.shape == (1, 6) and int(score.argmax()) == 3 and float(score[0, 3]) == pytest.approx(1.0, abs=1e-5)
+    assert float(score[0].sort().values[-2]) < 0.9                                   # the others' prints differ
+    empty = coarse_similarity(torch.zeros_like(query), pooled, plane, 4)             # no data: nothing compared
+    assert torch.equal(empty, torch.full((1, 6), -1.0))
+    gallery = Gallery(anchors, torch.arange(6), torch.arange(6), torch.zeros(6, dtype=torch.long),
+                      torch.eye(3).repeat(6, 1, 1), list("abcdef"), list("abcdef"))
+    held, share = gallery.coarse_images(4)
+    assert torch.allclose(held, pooled[0]) and torch.allclose(share, plane[0])
+    assert gallery.coarse_images(4)[0] is held                                       # pooled once
+
+
+def test_the_shortlist_meets_an_anchor_the_features_rank_far_by_its_pixels() -> None:
+    anchors = torch.cat([textured(seed) for seed in range(30, 42)])                 # 12 products, one anchor each
+    gallery_features = torch.arange(12, dtype=torch.float64)[:, None]
+    queries = torch.cat([anchors[10:11].clone(), textured(50)])                      # product 10; one unlike any
+    queries[0, 0, 0, 0], queries[1, 0, 0, 0] = 0.0, 1.0                             # stamps (outside the planes)
+    rec = StubRecognizer(anchors, list(range(12)), gallery_features, torch.tensor([[0.0], [0.0]]))
+    near = verify_candidates(rec, queries, top_k=3, verify_max=0.1)                 # product 10 is 11th nearest
+    assert near.verified.tolist() == [False, False] and near.tried.tolist() == [3, 3]
+    wide = verify_candidates(rec, queries, top_k=3, verify_max=0.1, shortlist=12)
+    assert wide.gallery_index.tolist()[0] == 10 and wide.verified.tolist() == [True, False]
+    assert wide.tried.tolist() == [3 + SHORTLIST_EXTRA] * 2 and float(wide.feature_distance[0]) == pytest.approx(10.0)
+    assert verify_candidates(rec, queries, 3, 0.1, shortlist=3).tried.tolist() == [3, 3]  # at most top_k: none
+    # a candidate found by its pixels verifies within the stricter bar only
+    shifted = queries.clone()
+    inner = anchors[10, :, 4:-4, 4:-4]
+    shifted[0, :, 4:-4, 4:-4] = 0.5 * (inner.roll(1, dims=-1) + inner.roll(2, dims=-1))  # about 1.5 px off
+    off = verification_distance(shifted[:1], torch.eye(3)[None], anchors[10:11], blur_sigma=1.0, skip_empty=True)
+    assert SHORTLIST_VERIFY_MAX < float(off[0]) <= 0.1
+    assert verify_candidates(rec, shifted, 3, 0.1, shortlist=12).verified.tolist() == [False, False]
+    rec.query_features = torch.tensor([[9.0], [0.0]])                               # among the features' 3 nearest
+    assert verify_candidates(rec, shifted, 3, 0.1, shortlist=12).gallery_index.tolist()[0] == 10
+
+
+def test_of_several_candidates_that_verify_the_shortlist_keeps_the_closest() -> None:
+    anchors = torch.cat([textured(seed) for seed in range(30, 42)])
+    anchors[2] = anchors[7]
+    anchors[2, :, 4:-4, 4:-4] = anchors[7, :, 4:-4, 4:-4].roll(1, dims=-1)        # product 2: near 7's print
+    queries = anchors[7:8].clone()
+    queries[0, 0, 0, 0] = 0.0
+    rec = StubRecognizer(anchors, list(range(12)), torch.arange(12, dtype=torch.float64)[:, None],
+                         torch.tensor([[0.0]]))
+    first = verify_candidates(rec, queries, top_k=9, verify_max=0.1)                 # the first that verifies: 2
+    closest = verify_candidates(rec, queries, top_k=9, verify_max=0.1, shortlist=12)
+    assert first.gallery_index.tolist() == [2] and closest.gallery_index.tolist() == [7]
+    assert float(closest.distance[0]) < float(first.distance[0]) <= 0.1
 
 
 def test_a_given_answer_is_not_changed_in_place_and_candidate_poses_are_used() -> None:
