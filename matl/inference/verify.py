@@ -49,7 +49,7 @@ from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
            "away_from_hidden", "candidate_distances", "coarse_similarity", "explained_distance", "hidden_share",
-           "patch_distances", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
+           "patch_distances", "subject_share", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -76,6 +76,12 @@ COARSE_CELL = 4
 SHORTLIST_EXTRA = 4
 #: ``verify_shortlist``: the largest ``1 - ZNCC`` that verifies a candidate taken by its pixels (docs/decisions.md)
 SHORTLIST_VERIFY_MAX = 0.06
+#: ``verify_shortlist``: a candidate taken by its pixels must cover at least this share of what the crop shows (its
+#: subject, not a neighbour beside it; as ``uncover``'s default)
+SHORTLIST_SUBJECT = 0.7
+#: a query pixel is shown where its brightest channel is above this and its visibility above one half (a crop on
+#: black shows its product, not its background)
+SHOWN_LEVEL = 0.1
 #: ``patches``: fewest usable patches the patches' part needs (a smaller plane is judged by its ZNCC alone)
 MIN_PATCHES = 4
 #: ``patches``: the patches' trimmed mean counts this many times over (it must be this much lower than ``verify_max``:
@@ -520,8 +526,10 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
         shortlist: ``verify_shortlist``: when above ``top_k``, a query whose nearest candidate does not verify
             also meets the :data:`SHORTLIST_EXTRA` anchors among its ``shortlist`` nearest (beyond the ``top_k``)
             whose pixels at the STN's pose look most like it (:func:`coarse_similarity`), each verifying within
-            :data:`SHORTLIST_VERIFY_MAX` (one of many tried: a stricter bar); of the candidates that verify, the
-            one with the lowest distance wins. 0 (or at most ``top_k``): the features' order alone.
+            :data:`SHORTLIST_VERIFY_MAX` (one of many tried: a stricter bar) where its plane covers at least
+            :data:`SHORTLIST_SUBJECT` of what the crop shows (:func:`subject_share`: the crop's subject, not a
+            neighbour beside it); of the candidates that verify, the one with the lowest distance wins. 0 (or at
+            most ``top_k``): the features' order alone.
     """
     g = recognizer.gallery
     n = len(queries)
@@ -555,7 +563,7 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     again = candidate_pose is not None and not first_refined  # the nearest candidate, posed anew by the refinement
     if not again:
         d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
-    k = min(top_k - (0 if again else 1), d.shape[1])
+    k = features_k = min(top_k - (0 if again else 1), d.shape[1])
     cand_d, cand = d.topk(k, dim=1, largest=False)  # (T, k) nearest first
     limit = torch.full((len(todo), k), verify_max, dtype=torch.float64)  # (T, k) each candidate's verify_max
     widened = shortlist > top_k
@@ -587,6 +595,12 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
     poses[t, j] = (H if answer_H is None else answer_H).cpu().double()
     ok = v <= limit
+    if widened:  # a candidate taken by its pixels is the crop's subject
+        ti, tj = torch.nonzero(ok[:, features_k:], as_tuple=True)
+        if len(ti):
+            pair = torch.nonzero((t == ti[:, None]) & (j == (tj + features_k)[:, None]))[:, 1]
+            share = subject_share(x[ti], H[pair], anchors[pair], None if seen is None else seen[ti.to(seen.device)])
+            ok[ti, tj + features_k] = share.cpu() >= SHORTLIST_SUBJECT
     rows = torch.nonzero(ok.any(1)).flatten()
     # candidates of two orders: the one that verifies closest; of one: the first that verifies, nearest first
     col = (v[rows].masked_fill(~ok[rows], float("inf")).argmin(1) if widened
@@ -619,6 +633,30 @@ def coarse_similarity(warped: torch.Tensor, anchors: torch.Tensor, plane: torch.
     a, b = centred(anchors), centred(q)
     corr = (a * b).sum((2, 3, 4)) / ((a * a).sum((2, 3, 4)) * (b * b).sum((2, 3, 4))).sqrt().clamp(min=1e-12)
     return corr.masked_fill(count < MIN_PIXELS, -1.0)
+
+
+def subject_share(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
+                  visibility: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B,)`` the share of what each query shows (pixels brighter than :data:`SHOWN_LEVEL`, visible above one half)
+    that its anchor's plane covers at the pose: near 1 for the crop's subject, low for a neighbour beside it; 0 where
+    the query shows nothing.
+
+    Args:
+        queries: ``(B, 3, S, S)`` model-size queries; ``query_H_anchor``: ``(B, 3, 3)`` anchor pixel -> query pixel;
+        anchors: ``(B, 3, S, S)`` (zero outside the plane); visibility: ``(B, 1, S, S)`` in [0, 1], or None (ones).
+    """
+    if len(queries) == 0:
+        return torch.zeros(0, dtype=torch.float64)
+    shown = queries.amax(1, keepdim=True) > SHOWN_LEVEL
+    if visibility is not None:
+        shown &= visibility.to(shown.device) > 0.5
+    anchor_H_query = torch.linalg.inv(query_H_anchor.double())
+    plane = (anchors.amax(1, keepdim=True) > 0).to(queries.dtype)
+    covered = sample_by_normalised(plane, pixel_to_normalised(anchor_H_query, tuple(queries.shape[-2:])).to(
+        plane.dtype))
+    count = shown.flatten(1).sum(1).double()
+    inside = ((covered > 0.5) & shown).flatten(1).sum(1).double()
+    return torch.where(count > 0, inside / count.clamp_min(1.0), torch.zeros_like(count))
 
 
 def candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None

@@ -23,6 +23,7 @@ from matl.inference.verify import (
     gaussian_blur,
     hidden_share,
     patch_distances,
+    subject_share,
     verification_distance,
     verify_candidates,
     weighted_zncc,
@@ -187,6 +188,20 @@ def test_the_shortlist_meets_an_anchor_the_features_rank_far_by_its_pixels() -> 
     assert verify_candidates(rec, shifted, 3, 0.1, shortlist=12).verified.tolist() == [False, False]
     rec.query_features = torch.tensor([[9.0], [0.0]])                               # among the features' 3 nearest
     assert verify_candidates(rec, shifted, 3, 0.1, shortlist=12).gallery_index.tolist()[0] == 10
+
+
+def test_the_share_of_a_crop_its_subject_covers() -> None:
+    anchor = textured(60)                                                            # its plane: the inner 24 x 24
+    query = anchor.clone()
+    assert float(subject_share(query, torch.eye(3)[None], anchor)[0]) == pytest.approx(1.0)
+    query[..., :4, :] = 0.5                                                          # a neighbour's 4 x 32 px beside it
+    share = float(subject_share(query, torch.eye(3)[None], anchor)[0])
+    assert share == pytest.approx(24 * 24 / (24 * 24 + 4 * 32), abs=0.01)
+    assert float(subject_share(query, shift(12.0, 0.0), anchor)[0]) < 0.5           # posed half off the subject
+    hidden = torch.ones(1, 1, S, S)
+    hidden[..., :4, :] = 0.0                                                         # the neighbour masked out
+    assert float(subject_share(query, torch.eye(3)[None], anchor, hidden)[0]) == pytest.approx(1.0)
+    assert float(subject_share(torch.zeros_like(query), torch.eye(3)[None], anchor)[0]) == 0.0  # nothing shown
 
 
 def test_of_several_candidates_that_verify_the_shortlist_keeps_the_closest() -> None:
