@@ -6,6 +6,9 @@ from dataclasses import dataclass, field
 
 import torch
 
+#: a coarse cell counts as plane when at least this share of its pixels is (:meth:`Gallery.coarse_images`)
+WHOLE_CELL = 0.99
+
 
 @dataclass
 class Gallery:
@@ -29,7 +32,7 @@ class Gallery:
     plane_names: list[str]
     #: (anchor_H_canon, its float64 copy): converted once, again only when anchor_H_canon is replaced
     _canon64: tuple[torch.Tensor, torch.Tensor] | None = field(default=None, init=False, repr=False, compare=False)
-    #: (images, cell, their coarse copy and plane share): :meth:`coarse_images`, pooled once per ``images``
+    #: (images, cell, their coarse copy and whole-plane cells): :meth:`coarse_images`, pooled once per ``images``
     _coarse: tuple[torch.Tensor, int, torch.Tensor, torch.Tensor] | None = field(default=None, init=False, repr=False,
                                                                                 compare=False)
 
@@ -51,15 +54,15 @@ class Gallery:
         return self._canon64[1]
 
     def coarse_images(self, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """The anchors averaged over ``cell`` x ``cell`` pixel cells, ``(G, 3, S / cell, S / cell)`` float32, and each
-        cell's share of plane pixels (any channel non-zero) ``(G, 1, S / cell, S / cell)``; pooled once per ``images``
-        (verification's shortlist compares many anchors per query at this scale)."""
+        """The anchors averaged over ``cell`` x ``cell`` pixel cells, ``(G, 3, S / cell, S / cell)`` float32, and which
+        cells are plane throughout (any channel non-zero in every pixel) ``(G, 1, S / cell, S / cell)`` bool; pooled
+        once per ``images`` (verification's shortlist compares many anchors per query at this scale)."""
         held = self._coarse
         if held is None or held[0] is not self.images or held[1] != cell:
             images = self.images.float()
             plane = (images.amax(1, keepdim=True) > 0).float()
             held = (self.images, cell, torch.nn.functional.avg_pool2d(images, cell),
-                    torch.nn.functional.avg_pool2d(plane, cell))
+                    torch.nn.functional.avg_pool2d(plane, cell) > WHOLE_CELL)
             self._coarse = held
         return held[2], held[3]
 

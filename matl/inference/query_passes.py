@@ -26,13 +26,11 @@ from matl.inference.refine import RefinedRecognizer
 from matl.inference.uncover import (
     SUBJECT_MARGIN,
     centre_offset,
-    covered_share,
     erased_alpha,
     lies_on_top,
     plane_in_query,
-    shown_pixels,
 )
-from matl.inference.verify import Verification
+from matl.inference.verify import Verification, covered_share, shown_pixels
 from matl.models.prediction import Prediction
 from matl.utils.threads import thread_map
 from matl.utils.timing import stage
@@ -232,7 +230,7 @@ class QueryPasses:
     def _shown(self, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], queries: torch.Tensor,
                visibility: torch.Tensor | None, rows: list[int]) -> torch.Tensor:
         """``(R, S, S)`` bool: the pixels the crops of rows ``rows`` show
-        (:func:`~matl.inference.uncover.shown_pixels`), as the foreground step masked them (with ``foreground.passes``
+        (:func:`~matl.inference.verify.shown_pixels`), as the foreground step masked them (with ``foreground.passes``
         the answered plane masked the queries too: the step's mask alone)."""
         if self.foreground is None or int(self.foreground.passes) == 0:
             framed = queries[rows]

@@ -28,9 +28,6 @@ import torch
 
 from matl.inference.verify import zncc
 
-#: a pixel of the query counts as shown where its visibility is above 0.5 and its brightest channel above this: a crop
-#: on black (no mask found, visibility all ones) shows its product, not its background
-SHOWN_LEVEL = 0.1
 #: the explained plane is erased from the crop's foreground grown by this many pixels of the file (its edge, a pose
 #: a pixel off)
 ERASE_PX = 2
@@ -40,23 +37,6 @@ MIN_OVERLAP = 20
 #: verification distance is within this share of ``verify_max``: the keypoints chose a product the embedding did not
 #: put first, so its print must match with a margin (docs/decisions.md)
 SUBJECT_MARGIN = 0.5
-
-
-def shown_pixels(queries: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
-    """``(B, S, S)`` bool: the pixels the model-size queries ``(B, 3, S, S)`` show (brighter than
-    :data:`SHOWN_LEVEL` in some channel, and visible above 0.5 in ``visibility`` ``(B, 1, S, S)`` when given)."""
-    shown = queries.amax(1) > SHOWN_LEVEL
-    if visibility is not None:
-        shown &= visibility[:, 0].to(shown.device) > 0.5
-    return shown
-
-
-def covered_share(plane: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` float: the share of each query's shown pixels ``(B, S, S)`` bool that its plane ``(B, S, S)`` bool
-    covers (0 where nothing is shown)."""
-    count = shown.flatten(1).sum(1).double()
-    return torch.where(count > 0, (plane & shown).flatten(1).sum(1).double() / count.clamp_min(1.0),
-                       torch.zeros_like(count))
 
 
 def plane_in_query(plane: np.ndarray, query_H_canon: np.ndarray, size: int) -> np.ndarray:

@@ -45,6 +45,7 @@ import torch
 import torch.nn.functional as F
 from numba import njit
 
+from matl.data.gallery import WHOLE_CELL
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
 __all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
@@ -598,7 +599,9 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     if widened:  # a candidate taken by its pixels is the crop's subject
         ti, tj = torch.nonzero(ok[:, features_k:], as_tuple=True)
         if len(ti):
-            pair = torch.nonzero((t == ti[:, None]) & (j == (tj + features_k)[:, None]))[:, 1]
+            pair_of = torch.full((len(todo), k), -1, dtype=torch.long)  # (T, k) -> its row among the pairs
+            pair_of[t, j] = torch.arange(len(t))
+            pair = pair_of[ti, tj + features_k]
             share = subject_share(x[ti], H[pair], anchors[pair], None if seen is None else seen[ti.to(seen.device)])
             ok[ti, tj + features_k] = share.cpu() >= SHORTLIST_SUBJECT
     rows = torch.nonzero(ok.any(1)).flatten()
@@ -616,13 +619,13 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
 
 def coarse_similarity(warped: torch.Tensor, anchors: torch.Tensor, plane: torch.Tensor, cell: int) -> torch.Tensor:
     """``(T, M)`` ZNCC of each of ``warped`` ``(T, 3, S, S)`` (queries in the anchor frame at the STN's pose) with each
-    of its ``M`` shortlisted anchors ``(T, M, 3, S / cell, S / cell)`` (:meth:`Gallery.coarse_images`, plane share
-    ``plane`` ``(T, M, 1, S / cell, S / cell)``), both averaged over ``cell`` px cells: over the cells that are
-    whole plane and where the query has data, per channel a gain and a bias left out; -1 where fewer than
-    :data:`MIN_PIXELS` cells are compared."""
+    of its ``M`` shortlisted anchors ``(T, M, 3, S / cell, S / cell)`` (:meth:`Gallery.coarse_images`, their
+    whole-plane cells ``plane`` ``(T, M, 1, S / cell, S / cell)`` bool), both averaged over ``cell`` px cells: over
+    the cells that are whole plane and where the query has data, per channel a gain and a bias left out; -1 where
+    fewer than :data:`MIN_PIXELS` cells are compared."""
     pooled = F.avg_pool2d(warped.float(), cell)                                   # (T, 3, s, s)
     data = F.avg_pool2d((warped.amax(1, keepdim=True) > 0).float(), cell)        # (T, 1, s, s)
-    mask = ((plane > 0.99) & (data[:, None] > 0.99)).float()                     # (T, M, 1, s, s)
+    mask = (plane & (data[:, None] > WHOLE_CELL)).float()                        # (T, M, 1, s, s)
     q = pooled[:, None].expand_as(anchors)
     count = mask.sum((2, 3, 4)).clamp(min=1.0)                                  # (T, M)
     n = mask.sum((3, 4)).clamp(min=1.0)                                         # (T, M, 1)
@@ -633,6 +636,23 @@ def coarse_similarity(warped: torch.Tensor, anchors: torch.Tensor, plane: torch.
     a, b = centred(anchors), centred(q)
     corr = (a * b).sum((2, 3, 4)) / ((a * a).sum((2, 3, 4)) * (b * b).sum((2, 3, 4))).sqrt().clamp(min=1e-12)
     return corr.masked_fill(count < MIN_PIXELS, -1.0)
+
+
+def shown_pixels(queries: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
+    """``(B, S, S)`` bool: the pixels the model-size queries ``(B, 3, S, S)`` show (brighter than
+    :data:`SHOWN_LEVEL` in some channel, and visible above 0.5 in ``visibility`` ``(B, 1, S, S)`` when given)."""
+    shown = queries.amax(1) > SHOWN_LEVEL
+    if visibility is not None:
+        shown &= visibility[:, 0].to(shown.device) > 0.5
+    return shown
+
+
+def covered_share(plane: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` float: the share of each query's shown pixels ``(B, S, S)`` bool that its plane ``(B, S, S)`` bool
+    covers (0 where nothing is shown)."""
+    count = shown.flatten(1).sum(1).double()
+    return torch.where(count > 0, (plane & shown).flatten(1).sum(1).double() / count.clamp_min(1.0),
+                       torch.zeros_like(count))
 
 
 def subject_share(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
@@ -647,16 +667,11 @@ def subject_share(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: 
     """
     if len(queries) == 0:
         return torch.zeros(0, dtype=torch.float64)
-    shown = queries.amax(1, keepdim=True) > SHOWN_LEVEL
-    if visibility is not None:
-        shown &= visibility.to(shown.device) > 0.5
     anchor_H_query = torch.linalg.inv(query_H_anchor.double())
     plane = (anchors.amax(1, keepdim=True) > 0).to(queries.dtype)
     covered = sample_by_normalised(plane, pixel_to_normalised(anchor_H_query, tuple(queries.shape[-2:])).to(
         plane.dtype))
-    count = shown.flatten(1).sum(1).double()
-    inside = ((covered > 0.5) & shown).flatten(1).sum(1).double()
-    return torch.where(count > 0, inside / count.clamp_min(1.0), torch.zeros_like(count))
+    return covered_share(covered[:, 0] > 0.5, shown_pixels(queries, visibility))
 
 
 def candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: torch.Tensor | None

@@ -18,10 +18,8 @@ from matl.inference.query_passes import QueryPasses
 from matl.inference.uncover import (
     MIN_OVERLAP,
     centre_offset,
-    covered_share,
     erased_alpha,
     lies_on_top,
-    shown_pixels,
 )
 from matl.inference.verify import Verification
 from matl.utils.errors import MatlError
@@ -33,20 +31,6 @@ from tests.predict_helpers import write_png
 MARGIN = 20
 #: the card lying across the box covers its print's columns up to here (40 % of them)
 CARD_COLUMNS = 64
-
-
-def test_shown_pixels_and_the_share_a_plane_covers() -> None:
-    queries = torch.zeros(1, 3, 4, 4)
-    queries[0, 0, :, :3] = 0.5  # three columns bright, the last one black
-    visibility = torch.ones(1, 1, 4, 4)
-    visibility[0, 0, 0] = 0.0  # the first row not shown by the mask
-    shown = shown_pixels(queries, visibility)
-    assert shown.sum() == 9 and not shown[0, 0].any() and not shown[0, :, 3].any()
-    assert shown_pixels(queries, None).sum() == 12
-    plane = torch.zeros(1, 4, 4, dtype=torch.bool)
-    plane[0, :, :1] = True  # one column: 3 of the 9 shown pixels
-    assert covered_share(plane, shown).tolist() == pytest.approx([3 / 9])
-    assert covered_share(plane, torch.zeros_like(shown)).tolist() == [0.0]
 
 
 def test_a_plane_is_erased_in_the_files_pixels() -> None:

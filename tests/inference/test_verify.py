@@ -19,10 +19,12 @@ from matl.inference.verify import (
     anchor_foreground,
     away_from_hidden,
     coarse_similarity,
+    covered_share,
     explained_distance,
     gaussian_blur,
     hidden_share,
     patch_distances,
+    shown_pixels,
     subject_share,
     verification_distance,
     verify_candidates,
@@ -153,7 +155,7 @@ def test_candidates_are_tried_nearest_first_until_one_verifies() -> None:
 def test_coarse_similarity_of_a_query_with_its_shortlisted_anchors() -> None:
     anchors = torch.cat([textured(seed) for seed in range(20, 26)])                 # (6, 3, S, S)
     pooled = torch.nn.functional.avg_pool2d(anchors, 4)[None]                        # (1, 6, 3, S/4, S/4)
-    plane = torch.nn.functional.avg_pool2d((anchors.amax(1, keepdim=True) > 0).float(), 4)[None]
+    plane = torch.nn.functional.avg_pool2d((anchors.amax(1, keepdim=True) > 0).float(), 4)[None] > 0.99
     query = 1.7 * anchors[3:4] + 0.05                                               # a gain and a bias: the same print
     score = coarse_similarity(query, pooled, plane, 4)
     assert score.shape == (1, 6) and int(score.argmax()) == 3 and float(score[0, 3]) == pytest.approx(1.0, abs=1e-5)
@@ -163,7 +165,7 @@ def test_coarse_similarity_of_a_query_with_its_shortlisted_anchors() -> None:
     gallery = Gallery(anchors, torch.arange(6), torch.arange(6), torch.zeros(6, dtype=torch.long),
                       torch.eye(3).repeat(6, 1, 1), list("abcdef"), list("abcdef"))
     held, share = gallery.coarse_images(4)
-    assert torch.allclose(held, pooled[0]) and torch.allclose(share, plane[0])
+    assert torch.allclose(held, pooled[0]) and torch.equal(share, plane[0])
     assert gallery.coarse_images(4)[0] is held                                       # pooled once
 
 
@@ -203,6 +205,19 @@ def test_the_share_of_a_crop_its_subject_covers() -> None:
     assert float(subject_share(query, torch.eye(3)[None], anchor, hidden)[0]) == pytest.approx(1.0)
     assert float(subject_share(torch.zeros_like(query), torch.eye(3)[None], anchor)[0]) == 0.0  # nothing shown
 
+
+def test_shown_pixels_and_the_share_a_plane_covers() -> None:
+    queries = torch.zeros(1, 3, 4, 4)
+    queries[0, 0, :, :3] = 0.5  # three columns bright, the last one black
+    visibility = torch.ones(1, 1, 4, 4)
+    visibility[0, 0, 0] = 0.0  # the first row not shown by the mask
+    shown = shown_pixels(queries, visibility)
+    assert shown.sum() == 9 and not shown[0, 0].any() and not shown[0, :, 3].any()
+    assert shown_pixels(queries, None).sum() == 12
+    plane = torch.zeros(1, 4, 4, dtype=torch.bool)
+    plane[0, :, :1] = True  # one column: 3 of the 9 shown pixels
+    assert covered_share(plane, shown).tolist() == pytest.approx([3 / 9])
+    assert covered_share(plane, torch.zeros_like(shown)).tolist() == [0.0]
 
 def test_of_several_candidates_that_verify_the_shortlist_keeps_the_closest() -> None:
     anchors = torch.cat([textured(seed) for seed in range(30, 42)])
