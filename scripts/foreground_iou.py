@@ -1,4 +1,5 @@
-"""Foreground steps side by side: mask IoU against the true visible mask, and milliseconds a crop (one thread).
+"""Foreground steps side by side: mask IoU, precision and recall against the true visible mask, and milliseconds a
+crop (one thread).
 
 Scores ``foreground=grabcut`` (its defaults), ``foreground=learned`` (its defaults, with ``--weights``) and the learned
 step with each ``--variant`` (``name:key=value,key=value``, e.g. ``alone:grabcut_iterations=0``) on the RGB crops of
@@ -23,6 +24,9 @@ import yaml
 from matl.evaluation.masks import compare_steps, condition_crops
 from matl.inference.foreground import GrabCutForeground, LearnedForeground
 
+#: the result keys printed per step
+KEYS = ("iou", "iou_p10", "precision", "recall", "ms_per_crop")
+
 
 def variant(text: str) -> tuple[str, dict]:
     """``name:key=value,...`` as ``(name, {key: value})`` (values read as YAML)."""
@@ -45,7 +49,7 @@ def main() -> None:
     for spec in args.folders:
         folder, _, truth = spec.partition(":")
         crops = [(image[..., :3], mask) for image, mask in condition_crops(folder, args.limit, truth or "truth.jsonl")]
-        result = compare_steps(crops, steps, use_alpha=False, keep=lambda k: k in ("iou", "iou_p10", "ms_per_crop"))
+        result = compare_steps(crops, steps, use_alpha=False, keep=lambda k: k in KEYS)
         print(json.dumps({"folder": spec, "crops": len(crops), **result}))
 
 

@@ -66,6 +66,8 @@ class Scene:
         plane: the target's plane index in the catalog.
         query_H_canon: ``(3, 3)`` float64, the target's pose (canonical pixels -> crop pixels).
         info: what was drawn (background kind, neighbours, occluders' ``hidden_fraction``).
+        covered: ``(S, S)`` float32 in [0, 1]: the target's coverage before any occluder (``covered - visible``:
+            what an occluder hides of it); None: as ``visible``.
     """
 
     image: np.ndarray
@@ -73,6 +75,7 @@ class Scene:
     plane: int
     query_H_canon: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    covered: np.ndarray | None = None
 
 
 def bin_floor(size: int, rng: np.random.Generator) -> np.ndarray:
@@ -195,6 +198,7 @@ class SceneMaker:
         plane = int(rng.integers(cs.num_planes))
         query_H_canon = self.homography.sample(1, (S, S), g, self._footprints[plane:plane + 1])[0].numpy()
         target, visible = self._warp(plane, query_H_canon)
+        covered = visible.copy()
 
         draw = rng.random()
         kind = "black" if draw < self.black_p else "floor" if draw < self.black_p + self.floor_p else "bank"
@@ -231,7 +235,7 @@ class SceneMaker:
         shot = self.photometric(torch.from_numpy(np.ascontiguousarray(scene.transpose(2, 0, 1)))[None].float(), g)
         image = np.round(shot[0].permute(1, 2, 0).numpy() * 255.0) / 255.0  # 8 bits, as a camera's file
         return Scene(np.ascontiguousarray(image, dtype=np.float32), visible.astype(np.float32), plane, query_H_canon,
-                     info)
+                     info, covered.astype(np.float32))
 
 
 def _settings(node: Any) -> dict[str, Any]:
@@ -252,12 +256,14 @@ class SceneSet:
         visible: ``(n, 1, W, W)`` uint8, the visible coverage resized alike, x 255.
         hidden: ``(n,)`` float32, the share of the target the occluders hid.
         background: ``(n,)`` the background kind of each scene.
+        covered: ``(n, 1, W, W)`` uint8, the target's coverage before any occluder resized alike, x 255.
     """
 
     images: torch.Tensor
     visible: torch.Tensor
     hidden: torch.Tensor
     background: list[str]
+    covered: torch.Tensor
 
 
 def resize_scene(scene: Scene, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -274,20 +280,25 @@ def make_scene_set(maker: SceneMaker, indices: Sequence[int], size: int,
     n = len(indices)
     images = np.zeros((n, 3, size, size), np.uint8)
     visible = np.zeros((n, 1, size, size), np.uint8)
+    covered = np.zeros((n, 1, size, size), np.uint8)
     hidden = np.zeros(n, np.float32)
     background = []
     for j, index in enumerate(indices):
         scene = maker(int(index))
         images[j], visible[j] = resize_scene(scene, size)
+        whole = scene.visible if scene.covered is None else scene.covered
+        covered[j, 0] = (np.clip(cv2.resize(whole, (size, size), interpolation=cv2.INTER_AREA), 0, 1) * 255.0).round()
         hidden[j] = float(scene.info.get("hidden_fraction", 0.0))
         background.append(str(scene.info.get("background")))
         if progress is not None and (j + 1) % 1000 == 0:
             progress(j + 1, n)
-    return SceneSet(torch.from_numpy(images), torch.from_numpy(visible), torch.from_numpy(hidden), background)
+    return SceneSet(torch.from_numpy(images), torch.from_numpy(visible), torch.from_numpy(hidden), background,
+                    torch.from_numpy(covered))
 
 
 class _Batches(Dataset):
-    """A :class:`SceneSet` as float items ``{"image": (3, W, W) in [0, 1], "visible": (1, W, W) in [0, 1]}``."""
+    """A :class:`SceneSet` as float items ``{"image": (3, W, W), "visible": (1, W, W), "covered": (1, W, W)}`` in
+    [0, 1]."""
 
     def __init__(self, scenes: SceneSet) -> None:
         self.scenes = scenes
@@ -297,7 +308,8 @@ class _Batches(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         return {"image": self.scenes.images[index].float().div(255.0),
-                "visible": self.scenes.visible[index].float().div(255.0)}
+                "visible": self.scenes.visible[index].float().div(255.0),
+                "covered": self.scenes.covered[index].float().div(255.0)}
 
 
 class SceneDataModule(L.LightningDataModule):

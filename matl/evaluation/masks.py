@@ -42,6 +42,15 @@ def mask_iou(found: np.ndarray, truth: np.ndarray) -> float:
     return 1.0 if union == 0 else float((a & b).sum() / union)
 
 
+def mask_precision_recall(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """The share of a mask's pixels ``(H, W)`` (above 0.5) that the true mask ``(H, W)`` bool holds (precision: 1
+    when the mask is empty) and of the true pixels it holds (recall: 1 when the truth is empty). A pixel taken for
+    the product where an occluder lies costs verification more than one of the product missed (docs/decisions.md)."""
+    a, b = found > 0.5, truth.astype(bool)
+    both = float((a & b).sum())
+    return (both / float(a.sum()) if a.any() else 1.0), (both / float(b.sum()) if b.any() else 1.0)
+
+
 def _masked(step: Any, image: np.ndarray, use_alpha: bool) -> np.ndarray:
     """The mask ``(H, W)`` the recognizer uses for ``image`` with the foreground step ``step`` (None: no step), as
     :func:`matl.inference.foreground.mask_query` makes it: an RGBA crop's alpha refined by the step, an RGB crop's
@@ -57,12 +66,12 @@ def score_masks(step: Any, crops: Iterable[Crop], use_alpha: bool = True, warmup
     """IoU of ``step``'s masks of ``crops`` with their truths, and the step's milliseconds per crop.
 
     Returns:
-        ``{"iou": mean, "iou_median", "iou_p10": 10 % quantile, "queries", "ms_per_crop": median, "per_query":
-        [IoU, ...]}``.
+        ``{"iou": mean, "iou_median", "iou_p10": 10 % quantile, "precision", "recall": means
+        (:func:`mask_precision_recall`), "queries", "ms_per_crop": median, "per_query": [IoU, ...]}``.
     """
     from matl.utils.timing import compute_threads
 
-    ious, times = [], []
+    ious, times, shares = [], [], []
     with compute_threads(1):
         for i, (image, truth) in enumerate(crops):
             if i < warmup:  # untimed calls first: sessions and kernels are built at the first call
@@ -71,11 +80,14 @@ def score_masks(step: Any, crops: Iterable[Crop], use_alpha: bool = True, warmup
             found = _masked(step, image, use_alpha)
             times.append(time.perf_counter() - start)
             ious.append(mask_iou(found, truth))
+            shares.append(mask_precision_recall(found, truth))
     if not ious:
         raise MatlError("no crop to score: the folder's truth.jsonl names no mask_file")
     values = np.asarray(ious)
     return {"iou": round(float(values.mean()), 4), "iou_median": round(float(np.median(values)), 4),
-            "iou_p10": round(float(np.quantile(values, 0.1)), 4), "queries": len(values),
+            "iou_p10": round(float(np.quantile(values, 0.1)), 4),
+            "precision": round(float(np.mean([p for p, _ in shares])), 4),
+            "recall": round(float(np.mean([r for _, r in shares])), 4), "queries": len(values),
             "ms_per_crop": round(1000.0 * float(np.median(times)), 3), "per_query": [round(v, 4) for v in ious]}
 
 

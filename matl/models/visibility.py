@@ -170,9 +170,27 @@ def dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> t
     return (1.0 - (2.0 * (p * t).sum(1) + eps) / (p.sum(1) + t.sum(1) + eps)).mean()
 
 
-def visibility_loss(logits: torch.Tensor, target: torch.Tensor, dice_weight: float = 1.0) -> torch.Tensor:
-    """Binary cross-entropy (soft targets: a pixel's visible coverage) plus ``dice_weight`` x :func:`dice_loss`."""
-    bce = F.binary_cross_entropy_with_logits(logits, target)
+def visibility_loss(logits: torch.Tensor, target: torch.Tensor, dice_weight: float = 1.0,
+                    negative_weight: float = 1.0, occluder_weight: float = 1.0,
+                    covered: torch.Tensor | None = None) -> torch.Tensor:
+    """Binary cross-entropy (soft targets: a pixel's visible coverage) plus ``dice_weight`` x :func:`dice_loss`.
+
+    A pixel's cross-entropy counts ``1 + (negative_weight - 1) (1 - target) + (occluder_weight - 1) hidden`` times
+    (the batch's mean weight divides the sum), ``hidden = max(covered - target, 0)`` the target's coverage that an
+    occluder hides (``covered`` ``(B, 1, S, S)``: the target's coverage before any occluder; None: nothing hidden).
+    Above 1, ``negative_weight`` makes every pixel taken for the product where it is not (the floor, a neighbour,
+    an occluder) cost more than a visible one missed; ``occluder_weight`` only the occluder lying over the product.
+    """
+    weight = None
+    if negative_weight != 1.0:
+        weight = 1.0 + (float(negative_weight) - 1.0) * (1.0 - target)
+    if occluder_weight != 1.0 and covered is not None:
+        hidden = (covered - target).clamp(min=0.0)
+        weight = (1.0 if weight is None else weight) + (float(occluder_weight) - 1.0) * hidden
+    if weight is None:
+        bce = F.binary_cross_entropy_with_logits(logits, target)
+    else:
+        bce = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * weight).sum() / weight.sum()
     return bce + dice_weight * dice_loss(logits, target) if dice_weight else bce
 
 
@@ -194,23 +212,35 @@ class VisibilityModule(L.LightningModule):
         epochs: the cosine's length (the trainer's ``max_epochs``).
         dice_weight: weight of the soft Dice term beside the cross-entropy.
         threshold: probability above which a pixel is foreground for the validation IoU.
+        negative_weight: :func:`visibility_loss`'s weight of the pixels that do not show the product.
+        occluder_weight: :func:`visibility_loss`'s weight of the pixels where an occluder hides the product (batches
+            with ``"covered"``).
     """
 
     def __init__(self, net: VisibilityNet | dict[str, Any], lr: float = 3e-3, weight_decay: float = 1e-4,
-                 epochs: int = 10, dice_weight: float = 1.0, threshold: float = 0.5) -> None:
+                 epochs: int = 10, dice_weight: float = 1.0, threshold: float = 0.5,
+                 negative_weight: float = 1.0, occluder_weight: float = 1.0) -> None:
         super().__init__()
+        for name, value in (("negative_weight", negative_weight), ("occluder_weight", occluder_weight)):
+            if not float(value) > 0.0:
+                raise MatlError(f"model.{name}={value}: use a weight > 0 (1: every pixel alike)")
         self.net = net if isinstance(net, VisibilityNet) else VisibilityNet(**dict(net))
         self.lr, self.weight_decay, self.epochs = float(lr), float(weight_decay), int(epochs)
         self.dice_weight, self.threshold = float(dice_weight), float(threshold)
+        self.negative_weight, self.occluder_weight = float(negative_weight), float(occluder_weight)
         self._val: list[torch.Tensor] = []
         self.val_history: list[dict[str, float]] = []
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.net(images)
 
+    def _loss(self, logits: torch.Tensor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return visibility_loss(logits, batch["visible"], self.dice_weight, self.negative_weight,
+                               self.occluder_weight, batch.get("covered"))
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         logits = self.net(batch["image"])
-        loss = visibility_loss(logits, batch["visible"], self.dice_weight)
+        loss = self._loss(logits, batch)
         if not torch.isfinite(loss):
             from matl.utils.errors import NonFiniteLossError
 
@@ -220,7 +250,7 @@ class VisibilityModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         logits = self.net(batch["image"])
-        self.log("val/loss", visibility_loss(logits, batch["visible"], self.dice_weight), batch_size=len(logits))
+        self.log("val/loss", self._loss(logits, batch), batch_size=len(logits))
         threshold = math.log(self.threshold / (1.0 - self.threshold))  # the logit of the threshold
         self._val.append(mask_iou(logits > threshold, batch["visible"] > 0.5).cpu())
 

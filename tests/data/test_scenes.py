@@ -68,6 +68,9 @@ def test_occluded_pixels_are_out_of_the_visible_mask() -> None:
     whole = target_mask(m, scene.plane, scene.query_H_canon)
     assert np.allclose(scene.visible[:, SIZE // 2:], whole[:, SIZE // 2:], atol=1e-6)
     assert scene.info["occluder"] == "test" and scene.info["hidden_fraction"] > 0
+    assert np.allclose(scene.covered, whole, atol=1e-6)  # the coverage before the occluder: the hidden half too
+    sets = make_scene_set(m, [0], 16)
+    assert sets.covered[0, 0, :, :8].max() > 0 and sets.visible[0, 0, :, :8].max() == 0
 
 
 def test_real_occluders_hide_part_of_the_target_and_only_of_it() -> None:
@@ -129,6 +132,7 @@ def test_scene_sets_and_the_datamodule(tmp_path) -> None:
     batch = next(iter(dm.train_dataloader()))
     assert batch["image"].shape == (4, 3, 16, 16) and batch["visible"].shape == (4, 1, 16, 16)
     assert float(batch["visible"].min()) >= 0.0 and float(batch["visible"].max()) <= 1.0
+    assert torch.equal(batch["covered"], batch["visible"])  # nothing occluded: covered as visible
     assert len(dm.val_set.images) == 4 and len(dm.timing_crops(2)) == 2
     assert dm.validation_maker().seed == dm.scenes.seed + 1
     with pytest.raises(MatlError, match="train_scenes"):

@@ -11,7 +11,15 @@ import pytest
 
 from matl.data.augment import CameraAugment, Photometric
 from matl.data.scenes import SceneMaker
-from matl.evaluation.masks import compare_steps, condition_crops, mask_iou, score_condition, score_masks, score_scenes
+from matl.evaluation.masks import (
+    compare_steps,
+    condition_crops,
+    mask_iou,
+    mask_precision_recall,
+    score_condition,
+    score_masks,
+    score_scenes,
+)
 from matl.inference.foreground import GrabCutForeground
 from matl.utils.errors import MatlError
 from tests.data.conftest import PatternSource
@@ -41,6 +49,9 @@ def test_mask_iou() -> None:
     found[:, 5:] = 0.8  # above 0.5: counted
     assert mask_iou(found, truth) == pytest.approx(0.5)
     assert mask_iou(np.zeros((4, 4)), np.zeros((4, 4), bool)) == 1.0
+    assert mask_precision_recall(found, truth) == pytest.approx((0.5, 1.0))      # half of it over the background
+    assert mask_precision_recall(found[:, :3], truth[:, :3]) == (1.0, 1.0)
+    assert mask_precision_recall(np.zeros((4, 4)), np.ones((4, 4), bool)) == (1.0, 0.0)  # empty: nothing wrong taken
 
 
 def write_condition(root: Path) -> None:
@@ -85,7 +96,7 @@ def test_scores_on_validation_scenes() -> None:
     maker = SceneMaker(augment=CameraAugment(bank=8), photometric=Photometric(p=0.0), occluded_p=0.0,
                        black_p=0.0, floor_p=0.0).setup(PatternSource().build(48))
     exact = score_masks(Square(0, 48), [(np.zeros((48, 48, 3), np.float32), np.ones((48, 48), bool))])
-    assert exact["iou"] == 1.0
+    assert exact["iou"] == 1.0 and exact["precision"] == 1.0 and exact["recall"] == 1.0
     result = score_scenes(maker, 3, GrabCutForeground())
     assert result["queries"] == 3 and 0.0 <= result["iou"] <= 1.0
     both = compare_steps([(maker(0).image, maker(0).visible > 0.5)], {"all": Square(0, 48), "none": Square(0, 0)})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,24 @@ def test_losses_and_iou() -> None:
     assert float(visibility_loss(right, target)) < float(visibility_loss(wrong, target))
     assert float(visibility_loss(right, target, dice_weight=0.0)) == pytest.approx(
         float(torch.nn.functional.binary_cross_entropy_with_logits(right, target)))
+    # negative_weight by hand: one pixel of the product (logit 0: ln 2) and one of the background taken for it
+    # (logit ln 3: p = 3/4, its cross-entropy ln 4), the background's counting 3 times
+    logits, truth = torch.tensor([[[[0.0, math.log(3.0)]]]]), torch.tensor([[[[1.0, 0.0]]]])
+    assert float(visibility_loss(logits, truth, 0.0, negative_weight=3.0)) == pytest.approx(
+        (math.log(2.0) + 3.0 * math.log(4.0)) / 4.0)
+    assert float(visibility_loss(logits, truth, 0.0, negative_weight=1.0)) == pytest.approx(
+        (math.log(2.0) + math.log(4.0)) / 2.0)
+    with pytest.raises(MatlError, match="negative_weight"):
+        VisibilityModule({"size": 16, "channels": (8, 8, 8)}, negative_weight=0.0)
+    # occluder_weight: only the pixel an occluder hides (covered, not visible) counts more; the floor does not
+    logits3, truth3 = torch.tensor([[[[0.0, math.log(3.0), math.log(3.0)]]]]), torch.tensor([[[[1.0, 0.0, 0.0]]]])
+    covered = torch.tensor([[[[1.0, 1.0, 0.0]]]])                       # the second pixel: product under an occluder
+    assert float(visibility_loss(logits3, truth3, 0.0, occluder_weight=5.0, covered=covered)) == pytest.approx(
+        (math.log(2.0) + 5.0 * math.log(4.0) + math.log(4.0)) / 7.0)
+    assert float(visibility_loss(logits3, truth3, 0.0, occluder_weight=5.0)) == pytest.approx(  # nothing covered
+        (math.log(2.0) + 2.0 * math.log(4.0)) / 3.0)
+    with pytest.raises(MatlError, match="occluder_weight"):
+        VisibilityModule({"size": 16, "channels": (8, 8, 8)}, occluder_weight=-1.0)
     half = target.clone()
     half[:, :, 2:4] = 0.0
     assert mask_iou(half > 0, target > 0).tolist() == [0.5, 0.5]
