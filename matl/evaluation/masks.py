@@ -44,8 +44,8 @@ def mask_iou(found: np.ndarray, truth: np.ndarray) -> float:
 
 def mask_precision_recall(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """The share of a mask's pixels ``(H, W)`` (above 0.5) that the true mask ``(H, W)`` bool holds (precision: 1
-    when the mask is empty) and of the true pixels it holds (recall: 1 when the truth is empty). A pixel taken for
-    the product where an occluder lies costs verification more than one of the product missed (docs/decisions.md)."""
+    when the mask is empty) and of the true pixels it holds (recall: 1 when the truth is empty): which of a mask's
+    two errors it makes (an occluder or the floor taken for the product, print left out)."""
     a, b = found > 0.5, truth.astype(bool)
     both = float((a & b).sum())
     return (both / float(a.sum()) if a.any() else 1.0), (both / float(b.sum()) if b.any() else 1.0)
