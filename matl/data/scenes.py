@@ -266,12 +266,17 @@ class SceneSet:
     covered: torch.Tensor
 
 
+def _coverage_bytes(coverage: np.ndarray, size: int) -> np.ndarray:
+    """A coverage ``(S, S)`` in [0, 1] at the working size ``W`` (area averaging), ``(1, W, W)`` uint8 x 255."""
+    resized = cv2.resize(coverage, (size, size), interpolation=cv2.INTER_AREA)
+    return (np.clip(resized, 0, 1) * 255.0).round().astype(np.uint8)[None]
+
+
 def resize_scene(scene: Scene, size: int) -> tuple[np.ndarray, np.ndarray]:
     """A scene's image ``(3, W, W)`` uint8 and visible coverage ``(1, W, W)`` uint8 at the working size ``W``."""
     image = cv2.resize(scene.image, (size, size), interpolation=cv2.INTER_AREA)
-    visible = cv2.resize(scene.visible, (size, size), interpolation=cv2.INTER_AREA)
     return (np.clip(image, 0, 1) * 255.0).round().astype(np.uint8).transpose(2, 0, 1), \
-        (np.clip(visible, 0, 1) * 255.0).round().astype(np.uint8)[None]
+        _coverage_bytes(scene.visible, size)
 
 
 def make_scene_set(maker: SceneMaker, indices: Sequence[int], size: int,
@@ -286,8 +291,7 @@ def make_scene_set(maker: SceneMaker, indices: Sequence[int], size: int,
     for j, index in enumerate(indices):
         scene = maker(int(index))
         images[j], visible[j] = resize_scene(scene, size)
-        whole = scene.visible if scene.covered is None else scene.covered
-        covered[j, 0] = (np.clip(cv2.resize(whole, (size, size), interpolation=cv2.INTER_AREA), 0, 1) * 255.0).round()
+        covered[j] = _coverage_bytes(scene.visible if scene.covered is None else scene.covered, size)
         hidden[j] = float(scene.info.get("hidden_fraction", 0.0))
         background.append(str(scene.info.get("background")))
         if progress is not None and (j + 1) % 1000 == 0:
