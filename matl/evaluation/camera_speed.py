@@ -60,8 +60,8 @@ log = logging.getLogger(__name__)
 METHODS = ("matl", "matl_refine", "matl_fast_refine", "sift_ransac")
 KINDS = ("background", "clutter", "occluded")
 #: the stages of a MATL answer, in the order a query runs them (matl.Recognizer.time_stages)
-STAGES = ("foreground", "framing", "networks", "search", "alignment", "refinement", "verification", "keypoints",
-          "uncover", "retries", "flow")
+STAGES = ("foreground", "framing", "networks", "search", "alignment", "refinement", "verification", "lookalikes",
+          "keypoints", "uncover", "retries", "flow")
 
 
 def camera_options(options: DictConfig) -> DictConfig:

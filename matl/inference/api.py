@@ -544,6 +544,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         """Fill ``timer`` (:class:`matl.utils.timing.StageTimer`) with the milliseconds of each stage of the calls
         that follow: ``foreground``, ``framing`` (to the model frame), ``networks``, ``search``, ``alignment``,
         ``refinement``, ``verification`` (the further candidates' networks and poses included),
+        ``lookalikes`` (``lookalike_ratio``: the near products met, their candidates posed and verified),
         ``keypoints`` (``keypoint_pose``), ``uncover`` (``uncover``: everything a query answered again runs),
         ``retries`` (``foreground.retry_insets``: everything a retried query runs
         again) and ``flow`` (``flow_pose``); None stops it and leaves no cost.
@@ -608,8 +609,9 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         if (verification is not None and pred.query_H_anchor is not None and pred.features is not None
                 and self.lookalike_ratio is not None):  # a near twin compared over the whole plane
             taken = (pred.features, self._object_distances(pred.features))
-            pred, verification = self._lookalikes(queries, pred, verification, visibility, _upscale(query_H_file),
-                                                  taken[1][0])
+            with stage(self.stage_timer, "lookalikes"):
+                pred, verification = self._lookalikes(queries, pred, verification, visibility,
+                                                      _upscale(query_H_file), taken[1][0])
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)

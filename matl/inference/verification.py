@@ -246,10 +246,13 @@ class Verifying:
         rivals: dict[int, list[int]] = {}  # query -> the other products within the ratio, nearest first
         for i in range(len(queries)):
             if bool(verification.verified[i]):
-                close = [int(o) for o in torch.argsort(by_object[i], stable=True).tolist()
-                         if int(o) != int(own[i]) and float(by_object[i, o]) <= ratio * float(mine[i])]
-                if close:
-                    rivals[i] = close[:LOOKALIKE_RIVALS]
+                # the products within the ratio, found over the whole row at once (a catalogue holds thousands)
+                within = by_object[i] <= ratio * float(mine[i])
+                within[int(own[i])] = False
+                close = torch.nonzero(within).flatten()
+                if len(close):  # nearest first; ties in product order, as a stable sort of the whole row gives
+                    order = torch.argsort(by_object[i, close], stable=True)[:LOOKALIKE_RIVALS]
+                    rivals[i] = close[order].tolist()
         if not rivals:
             return pred, verification
         tied = list(rivals)
