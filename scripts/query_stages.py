@@ -35,6 +35,10 @@ def main() -> None:
     parser.add_argument("--threshold", default=None, help="the open set's threshold (auto, a number); default none")
     parser.add_argument("--flow-pose", default="always", help="the recognizer's flow_pose (always, unverified, none)")
     args = parser.parse_args()
+    for need in (args.folder / "gallery", args.folder / "truth.jsonl"):
+        if not need.exists():
+            raise SystemExit(f"query_stages: {need} not found: pass a folder with gallery/ and truth.jsonl "
+                             "(a matl.unseen condition folder or a catalogue size's, e.g. <out>/n10000)")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     threshold = None if args.threshold is None else (args.threshold if args.threshold == "auto"
@@ -45,7 +49,12 @@ def main() -> None:
     enrol_s = time.perf_counter() - start
     truth = [json.loads(line) for line in (args.folder / "truth.jsonl").read_text().splitlines() if line.strip()]
     files = [args.folder / t["image"] for t in truth if t.get("enrolled", True)][:args.queries]
-    images = [cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB) for f in files]
+    images = []
+    for file in files:
+        image = cv2.imread(str(file))
+        if image is None:
+            raise SystemExit(f"query_stages: {file} cannot be read as an image: is the folder complete?")
+        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
     for image in images[:args.warmup]:
         rec.predict(image)
     timer = StageTimer()

@@ -25,3 +25,10 @@ def test_every_call_is_broken_down(tmp_path: Path, capsys: pytest.CaptureFixture
     assert report["median_ms"] > 0.0 and {"networks", "search", "refinement"} <= set(report["stage_mean_ms"])
     for call in report["calls"]:
         assert call["ms"] == pytest.approx(sum(call["stages"].values()) + call["other"], abs=0.05)
+
+
+def test_a_folder_without_a_gallery_is_a_one_line_error(tmp_path: Path, monkeypatch) -> None:
+    script = load_script("query_stages")
+    monkeypatch.setattr(sys, "argv", ["query_stages.py", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"gallery not found: pass a folder with gallery/ and truth.jsonl"):
+        script.main()
