@@ -20,11 +20,9 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
-import torch
 
 from matl import Recognizer
-from matl.utils.timing import StageTimer
+from matl.utils.timing import StageTimer, stage_query_ms
 
 
 def main() -> None:
@@ -39,8 +37,6 @@ def main() -> None:
         if not need.exists():
             raise SystemExit(f"query_stages: {need} not found: pass a folder with gallery/ and truth.jsonl "
                              "(a matl.unseen condition folder or a catalogue size's, e.g. <out>/n10000)")
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
     threshold = None if args.threshold is None else (args.threshold if args.threshold == "auto"
                                                      else float(args.threshold))
     rec = Recognizer.pretrained(refine=True, threshold=threshold, flow_pose=args.flow_pose)
@@ -55,28 +51,24 @@ def main() -> None:
         if image is None:
             raise SystemExit(f"query_stages: {file} cannot be read as an image: is the folder complete?")
         images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-    for image in images[:args.warmup]:
-        rec.predict(image)
     timer = StageTimer()
     rec.time_stages(timer)
-    calls = []
-    for file, image in zip(files, images, strict=True):
-        start = time.perf_counter()
-        rec.predict(image)
-        total = (time.perf_counter() - start) * 1000.0
-        stages = timer.take()["ms"]
-        calls.append({"file": file.name, "ms": round(total, 2),
-                      "stages": {k: round(v, 2) for k, v in stages.items()},
-                      "other": round(total - sum(stages.values()), 2)})
-    rec.time_stages(None)
-    totals = np.array([c["ms"] for c in calls])
-    names = sorted({k for c in calls for k in c["stages"]})
+    try:  # the first --warmup calls (the first files again) untimed, then every file once, one thread
+        parts = stage_query_ms(rec.predict, images[:args.warmup] + images, timer, args.warmup, threads=1)
+    finally:
+        rec.time_stages(None)
+    stages = dict(parts["stages_ms"])
+    other = stages.pop("other")
+    calls = [{"file": file.name, "ms": round(call["ms"], 2),
+              "stages": {k: round(v, 2) for k, v in call["stages"].items()},
+              "other": round(call["ms"] - sum(call["stages"].values()), 2)}
+             for file, call in zip(files, parts["per_call"], strict=True)]
     print(json.dumps({
         "folder": str(args.folder), "gallery_planes": len(rec.planes),
         "enrol_s": round(enrol_s, 1), "queries": len(calls),
-        "median_ms": round(float(np.median(totals)), 2), "mean_ms": round(float(totals.mean()), 2),
-        "stage_mean_ms": {k: round(float(np.mean([c["stages"].get(k, 0.0) for c in calls])), 2) for k in names},
-        "other_mean_ms": round(float(np.mean([c["other"] for c in calls])), 2),
+        "median_ms": round(parts["call_ms_median"], 2), "mean_ms": round(parts["call_ms"], 2),
+        "stage_mean_ms": {k: round(v, 2) for k, v in sorted(stages.items())},
+        "other_mean_ms": round(other, 2),
         "calls": sorted(calls, key=lambda c: c["ms"])}))
 
 

@@ -297,7 +297,8 @@ def stage_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor
         ``call_ms`` (the mean wall clock of a call) and ``call_ms_median``; ``stages_ms``: each stage's mean
         milliseconds per query (a stage a call did not enter counts 0) plus ``other`` (``call_ms`` minus the stages:
         whatever ran outside them), so ``stages_ms`` adds up to ``call_ms``; ``within_ms``: the nested stages'
-        means (``{outer: {inner: ms}}``); ``calls_per_query``: the entries of each stage per query.
+        means (``{outer: {inner: ms}}``); ``calls_per_query``: the entries of each stage per query; ``per_call``: each
+        timed call's ``{"ms", "stages"}`` (its wall clock and the stages it entered), in call order.
     """
     records: list[dict[str, Any]] = []
 
@@ -325,7 +326,8 @@ def stage_query_ms(predict: Callable[[torch.Tensor], Any], queries: torch.Tensor
     call_ms = sum(times) / n if times else float("nan")
     stages["other"] = call_ms - sum(stages.values())
     return {"call_ms": call_ms, "call_ms_median": _median(times), "stages_ms": stages, "within_ms": within,
-            "calls_per_query": calls}
+            "calls_per_query": calls,
+            "per_call": [{"ms": ms, "stages": record["ms"]} for ms, record in zip(times, records, strict=True)]}
 
 
 @torch.no_grad()

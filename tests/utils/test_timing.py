@@ -120,6 +120,10 @@ def test_stage_query_ms_means_per_query_add_up_to_the_call() -> None:
     assert math.isclose(sum(stages.values()), out["call_ms"], rel_tol=1e-9)
     assert out["calls_per_query"] == {"first": 1.0, "second": 0.5}  # queries 1..4 timed, 1 and 3 odd
     assert out["call_ms_median"] > 0 and out["within_ms"] == {}
+    calls = out["per_call"]  # the timed calls one by one: queries 1..4, "second" in the odd ones
+    assert [set(c["stages"]) for c in calls] == [{"first", "second"}, {"first"}, {"first", "second"}, {"first"}]
+    assert math.isclose(sum(c["ms"] for c in calls) / 4, out["call_ms"], rel_tol=1e-9)
+    assert all(sum(c["stages"].values()) <= c["ms"] for c in calls)
 
 
 def test_alternating_batches_rotate_and_time_whole_batches() -> None:
