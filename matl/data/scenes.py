@@ -266,17 +266,20 @@ class SceneSet:
     covered: torch.Tensor
 
 
+def _resized_bytes(x: np.ndarray, size: int) -> np.ndarray:
+    """An image ``(S, S[, C])`` in [0, 1] at the working size ``W`` (area averaging), uint8 x 255, ``(W, W[, C])``."""
+    resized = cv2.resize(x, (size, size), interpolation=cv2.INTER_AREA)
+    return (np.clip(resized, 0, 1) * 255.0).round().astype(np.uint8)
+
+
 def _coverage_bytes(coverage: np.ndarray, size: int) -> np.ndarray:
-    """A coverage ``(S, S)`` in [0, 1] at the working size ``W`` (area averaging), ``(1, W, W)`` uint8 x 255."""
-    resized = cv2.resize(coverage, (size, size), interpolation=cv2.INTER_AREA)
-    return (np.clip(resized, 0, 1) * 255.0).round().astype(np.uint8)[None]
+    """A coverage ``(S, S)`` in [0, 1] at the working size ``W``, ``(1, W, W)`` uint8 x 255."""
+    return _resized_bytes(coverage, size)[None]
 
 
 def resize_scene(scene: Scene, size: int) -> tuple[np.ndarray, np.ndarray]:
     """A scene's image ``(3, W, W)`` uint8 and visible coverage ``(1, W, W)`` uint8 at the working size ``W``."""
-    image = cv2.resize(scene.image, (size, size), interpolation=cv2.INTER_AREA)
-    return (np.clip(image, 0, 1) * 255.0).round().astype(np.uint8).transpose(2, 0, 1), \
-        _coverage_bytes(scene.visible, size)
+    return _resized_bytes(scene.image, size).transpose(2, 0, 1), _coverage_bytes(scene.visible, size)
 
 
 def make_scene_set(maker: SceneMaker, indices: Sequence[int], size: int,
