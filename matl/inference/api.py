@@ -245,8 +245,11 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             with its own settings.
         lookalike_ratio: a verified answer meets every other product within this factor of its feature distance,
             nearest first and up to three (look-alikes: the same layout in another flavour or colour): each one's
-            best verified candidate is compared with the current answer by one ZNCC over the whole plane, the closer
+            best verified candidate is compared with the current answer (``lookalike_statistic``), the closer
             kept (:meth:`~matl.inference.verification.Verifying._lookalikes`); None: never.
+        lookalike_statistic: how an answer and a look-alike are compared: ``difference`` (default: where their
+            anchors, each warped into the crop by its pose, differ; :func:`~matl.inference.verify.difference_distances`)
+            or ``global`` (one ZNCC over the whole plane).
         uncover: an RGB crop's answer whose pose verifies but whose plane covers less than this share of what the
             crop shows (another product lying across the one the crop was cut for) is erased from the crop's
             foreground and the rest answered again; the rest's answer is taken where it is another product that
@@ -302,6 +305,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         self.flow_pose: FlowPose = settings.flow_pose
         self.pose_judge = settings.pose_judge
         self.lookalike_ratio = settings.lookalike_ratio
+        self.lookalike_statistic = settings.lookalike_statistic
         self.uncover = settings.uncover
         self._verify_refiner: tuple[FastRefiner, Any] | None = None  # the candidates' refiner and its anchor data
         self.open_set_statistic = settings.open_set_statistic
@@ -533,7 +537,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
                 "refine": self.refiner is not None, "refiner": refiner, "refine_check": self.refine_check,
                 "keypoint_pose": self.keypoint_pose.options(),
                 "flow_pose": self.flow_pose.options(), "pose_judge": self.pose_judge,
-                "lookalike_ratio": self.lookalike_ratio, "uncover": self.uncover,
+                "lookalike_ratio": self.lookalike_ratio, "lookalike_statistic": self.lookalike_statistic,
+                "uncover": self.uncover,
                 "quantize": self.quantize,
                 "foreground": None if self.foreground is None else dataclasses.asdict(self.foreground),
                 "quantize_fallback": self.quantize_fallback,

@@ -22,7 +22,7 @@ from matl.inference.foreground import ForegroundStep, foreground_option
 from matl.inference.keypoint_pose import KeypointPose
 from matl.inference.refine import PhotometricRefiner
 from matl.inference.runtime import RUNTIMES
-from matl.inference.verify import VERIFY_STATISTICS
+from matl.inference.verify import LOOKALIKE_STATISTICS, VERIFY_STATISTICS
 from matl.models.search import ExactSearch, FaissSearch, SearchFactory
 from matl.utils.config import is_int, is_number
 from matl.utils.errors import MatlError
@@ -100,7 +100,8 @@ class RecognizerOptions:
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
     pose_judge: str = "both"
-    lookalike_ratio: float | None = 1.1
+    lookalike_ratio: float | None = 1.25
+    lookalike_statistic: str = "difference"
     uncover: float | None = 0.7
     gallery_fill: float = 1.0
     query_fill: float = 1.0
@@ -157,6 +158,9 @@ class RecognizerOptions:
                 raise MatlError(f"lookalike_ratio={self.lookalike_ratio!r} is invalid: use a factor >= 1 (e.g. 1.1) or "
                                 "None (no look-alike comparison)")
             self.lookalike_ratio = float(self.lookalike_ratio)
+        if self.lookalike_statistic not in LOOKALIKE_STATISTICS:
+            raise MatlError(f"lookalike_statistic={self.lookalike_statistic!r} is invalid: use "
+                            f"{' or '.join(LOOKALIKE_STATISTICS)}")
         if self.uncover is not None:
             if not is_number(self.uncover) or not 0.0 < self.uncover <= 1.0:
                 raise MatlError(f"uncover={self.uncover!r} is invalid: use a share of the crop in (0, 1] (e.g. 0.7) or "
@@ -195,7 +199,8 @@ CONFIG_OPTIONS = ("open_set_statistic", "open_set_quantile", "calibration_planes
                   "verify_max",
                   "verify_blur", "verify_refine", "verify_statistic", "verify_min_visible", "verify_occluded_copies",
                   "verify_occluder_margin", "refine_check",
-                  "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "uncover")
+                  "keypoint_pose", "flow_pose", "pose_judge", "lookalike_ratio", "lookalike_statistic",
+                  "uncover")
 
 
 def option_default(name: str) -> Any:

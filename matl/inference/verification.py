@@ -20,6 +20,7 @@ from matl.inference.verify import (
     CandidatePose,
     Verification,
     candidate_distances,
+    difference_distances,
     explained_distance,
     hidden_share,
     verification_distance,
@@ -234,10 +235,12 @@ class Verifying:
         """``lookalike_ratio``: each verified answer meets the other products within ``lookalike_ratio`` times its own
         feature distance (look-alikes: the same layout in another flavour, colour band, size or badge), nearest
         first, at most :data:`LOOKALIKE_RIVALS` of them: each one's best candidate that verifies (:meth:`_verify` from
-        that product's nearest anchor, without the current answer's product) is compared with the current answer by
-        one ZNCC over the whole plane (``statistic=global``: the flavour text or the colour band counts as much as the
-        shared layout, where the verification's patches keep the best half), and the closer one is the answer, still
-        verified. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)``
+        that product's nearest anchor, without the current answer's product) is compared with the current answer, and
+        the closer one is the answer, still verified. ``lookalike_statistic`` says how: ``difference`` (the default)
+        where the two anchors, each warped into the crop by its pose, differ (:func:`difference_distances`: the flavour
+        text or the colour band decides, not the shared layout), or one ZNCC over the whole plane (``global``, and
+        where the two do not differ on what the crop shows), never the verification's patches, which keep the best
+        half. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)``
         (or None) as verification saw them; ``by_object`` ``(B, O)`` the queries' :meth:`_object_distances`."""
         ratio = self.lookalike_ratio
         if ratio is None or len(self.objects) < 2:
@@ -277,11 +280,22 @@ class Verifying:
                                  exclude_object=pred.object_index[rows].cpu(), visibility=seen, upscale=factor)
             answer_H, rival_H = pred.query_H_anchor[rows].double().cpu(), rival.query_H_anchor.double().cpu()
             answer_g, rival_g = pred.gallery_index[rows].cpu(), rival.gallery_index.cpu()
-            whole = verification_distance(queries[rows].repeat(2, 1, 1, 1), torch.cat([answer_H, rival_H]),
-                                          images[torch.cat([answer_g, rival_g]).to(images.device)], self.verify_blur,
-                                          skip_empty=True, statistic="global")
             n = len(rows)
-            better = [j for j in range(n) if bool(rival.verified[j]) and float(whole[n + j]) < float(whole[j])]
+            pair_g = torch.stack([answer_g, rival_g], 1).to(images.device)  # (n, 2): the answer's, the rival's
+            # each pair's distances (n, 2): where the two anchors differ, or one ZNCC over the whole plane (also
+            # where the two do not differ on what the crop shows)
+            apart = torch.full((n, 2), float("nan"), dtype=torch.float64)
+            if self.lookalike_statistic == "difference":
+                apart = difference_distances(queries[rows], torch.stack([answer_H, rival_H], 1), images[pair_g],
+                                             seen, self.verify_blur)
+            whole = apart.isnan().any(1)
+            if bool(whole.any()):
+                at_whole = whole.nonzero().flatten()
+                apart[at_whole] = verification_distance(
+                    queries[rows][at_whole].repeat(2, 1, 1, 1), torch.cat([answer_H[at_whole], rival_H[at_whole]]),
+                    images[pair_g[at_whole].T.flatten()], self.verify_blur, skip_empty=True,
+                    statistic="global").view(2, -1).T
+            better = [j for j in range(n) if bool(rival.verified[j]) and float(apart[j, 1]) < float(apart[j, 0])]
             if not better:
                 continue
             take = [rows[j] for j in better]

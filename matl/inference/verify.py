@@ -48,8 +48,9 @@ from numba import njit
 from matl.data.gallery import WHOLE_CELL
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
-__all__ = ["VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries", "anchor_foreground",
-           "away_from_hidden", "candidate_distances", "coarse_similarity", "explained_distance", "hidden_share",
+__all__ = ["LOOKALIKE_STATISTICS", "VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries",
+           "anchor_foreground", "away_from_hidden", "candidate_distances", "coarse_similarity", "difference_distances",
+           "explained_distance", "hidden_share",
            "patch_distances", "subject_share", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
@@ -59,6 +60,9 @@ CandidatePose = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor
 
 #: the statistics of :func:`verification_distance` (``verify_statistic``)
 VERIFY_STATISTICS = ("patches", "global")
+#: how two look-alike answers are told apart (``lookalike_statistic``): where their anchors differ
+#: (:func:`difference_distances`) or by one ZNCC over the whole plane
+LOOKALIKE_STATISTICS = ("difference", "global")
 #: smallest foreground (pixels) a comparison needs; below it the pair counts as unrelated (ZNCC 0)
 MIN_PIXELS = 16
 #: smallest share of the anchor's plane a comparison must cover with query data (docs/decisions.md)
@@ -99,6 +103,9 @@ EXPLAINED_CELLS = 10
 EXPLAINED_FILL = 0.3
 #: ... and costs 1 unless the warped plane covers at least this share of that foreground
 EXPLAINED_COVER = 0.5
+#: :func:`difference_distances`: two anchors that differ by less than this (the sum over the compared pixels of their
+#: mean absolute channel difference, of 1) are not told apart there (NaN)
+DIFFERENCE_MIN = 0.5
 
 
 def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
@@ -459,6 +466,66 @@ def explained_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anch
     total = weight.sum(1)
     return torch.where(total > 0, (cost.flatten(1) * weight).sum(1) / total.clamp_min(1e-9),
                        torch.ones_like(total)).cpu()
+
+
+def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
+                         visibility: torch.Tensor | None = None, blur_sigma: float = 1.0) -> torch.Tensor:
+    """Which of two posed anchors explains its query better where the two anchors differ.
+
+    Look-alikes (the same layout in another flavour name, colour band, pack size or badge) match a query equally
+    well over most of the plane; a comparison over the whole plane drowns their difference in the shared print,
+    the camera's noise and the pose's misfit. Here both anchors are warped into the query's frame by their poses
+    and compared on the query's own pixels, those it shows (its visibility above one half, else its non-empty
+    pixels) under both planes: each pixel counts by how much the two warped anchors differ there (their mean
+    absolute channel difference after a Gaussian of ``blur_sigma`` px, as the query's), so the flavour text or the
+    band decides and the shared layout does not. Each anchor explains the query through its own gain and bias per
+    channel (least squares over those pixels: the camera's exposure and white balance), and its distance is the
+    weighted mean squared residual.
+
+    Args:
+        queries: ``(B, 3, S, S)`` model-size queries.
+        query_H_anchor: ``(B, 2, 3, 3)`` pixel, anchor -> query, of each query's two anchors.
+        anchors: ``(B, 2, 3, S, S)`` the two anchors (zero outside the plane).
+        visibility: ``(B, 1, S, S)`` the queries' visibility in [0, 1], or None.
+        blur_sigma: Gaussian smoothing of the query and the warped anchors, px (0: none).
+    Returns:
+        ``(B, 2)`` float64 (lower: explained better); NaN for both where the two anchors differ by less than
+        :data:`DIFFERENCE_MIN` over the compared pixels (nothing to tell them apart by).
+    """
+    B = len(queries)
+    if query_H_anchor.shape[:2] != (B, 2) or anchors.shape[:2] != (B, 2):
+        raise ValueError(f"difference_distances needs two poses and two anchors a query, got "
+                         f"{tuple(query_H_anchor.shape)} and {tuple(anchors.shape)} for {B} queries")
+    if B == 0:
+        return torch.zeros(0, 2, dtype=torch.float64)
+    S = queries.shape[-1]
+    queries = queries.float()
+    flat = anchors.flatten(0, 1).to(queries.device, queries.dtype)
+    plane = anchor_foreground(flat).to(queries.dtype)
+    anchor_H_query = torch.linalg.inv(query_H_anchor.flatten(0, 1).double().to(queries.device))
+    warped = sample_by_normalised(torch.cat([flat, plane], 1),
+                                  pixel_to_normalised(anchor_H_query, (S, S)).to(queries.dtype)).view(B, 2, 4, S, S)
+    seen = (queries.amax(1, keepdim=True) > 0) if visibility is None else visibility.to(queries.device) > 0.5
+    region = (seen & (warped[:, 0, 3:4] > 0.5) & (warped[:, 1, 3:4] > 0.5)).to(queries.dtype)
+    images = torch.cat([queries, warped[:, 0, :3], warped[:, 1, :3]])
+    if blur_sigma > 0:
+        images = gaussian_blur(images, blur_sigma)
+    query, first, second = images.double().split(B)
+    region = region.double()
+    weight = (first - second).abs().mean(1, keepdim=True) * region
+    total = weight.sum((1, 2, 3))
+    count = region.sum((2, 3), keepdim=True).clamp_min(1.0)
+    query_mean = (query * region).sum((2, 3), keepdim=True) / count
+    distances = []
+    for anchor in (first, second):
+        anchor_mean = (anchor * region).sum((2, 3), keepdim=True) / count
+        centred = (anchor - anchor_mean) * region
+        gain = (centred * (query - query_mean)).sum((2, 3), keepdim=True) / (centred * centred).sum(
+            (2, 3), keepdim=True).clamp_min(1e-12)
+        residual = (query - query_mean - gain * (anchor - anchor_mean)) ** 2
+        distances.append((residual.mean(1, keepdim=True) * weight).sum((1, 2, 3)) / total.clamp_min(1e-12))
+    out = torch.stack(distances, 1)
+    return out.masked_fill((total < DIFFERENCE_MIN)[:, None], float("nan")).cpu()
 
 
 @dataclass

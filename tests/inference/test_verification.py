@@ -96,10 +96,12 @@ def test_the_second_look_leaves_out_an_occluder_s_shadow_and_keeps_the_pose(tmp_
             stub_recognizer(**bad)
 
 
-def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None:
+@pytest.mark.parametrize("statistic", ["difference", "global"])
+def test_a_look_alike_is_told_apart(tmp_path: Path, statistic: str) -> None:
     """A twin with the same colours (c() is the mean colour: the embedding cannot tell them apart) and a band of its
-    print mirrored (another flavour's text): the patches' verification passes both; the whole plane's ZNCC does
-    not, and with ``lookalike_ratio`` it decides."""
+    print mirrored (another flavour's text): the patches' verification passes both; a comparison where the two differ
+    (``lookalike_statistic=difference``) or over the whole plane (``global``) does not, and with ``lookalike_ratio``
+    it decides."""
     import cv2
 
     gallery, queries, pose = easy_files(tmp_path)
@@ -113,7 +115,7 @@ def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None
 
     def answer(ratio: float | None):
         rec = Recognizer(StubModel(pose), SIZE, 1, "stub-model", threshold=None, foreground="none",
-                         lookalike_ratio=ratio)
+                         lookalike_ratio=ratio, lookalike_statistic=statistic)
         return rec.enrol(gallery, cache=False).predict(query)
 
     fooled, told = answer(None), answer(1.1)
@@ -124,10 +126,13 @@ def test_a_look_alike_is_told_apart_over_the_whole_plane(tmp_path: Path) -> None
     timer = StageTimer()
     timed.enrol(gallery, cache=False).time_stages(timer)
     assert timed.predict(query).object == "red_box" and timer.ms["lookalikes"] > 0.0
-    assert stub_recognizer().options()["lookalike_ratio"] == 1.1  # the default
+    assert stub_recognizer().options()["lookalike_ratio"] == 1.25  # the default
     for bad in (0.9, "near", float("nan")):
         with pytest.raises(MatlError, match=r"lookalike_ratio=.* is invalid: use a factor >= 1"):
             stub_recognizer(lookalike_ratio=bad)
+    assert stub_recognizer().options()["lookalike_statistic"] == "difference"  # the default
+    with pytest.raises(MatlError, match=r"lookalike_statistic='patches' is invalid: use difference or global"):
+        stub_recognizer(lookalike_statistic="patches")
 
 
 def test_every_look_alike_of_a_family_is_met(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -20,6 +20,7 @@ from matl.inference.verify import (
     away_from_hidden,
     coarse_similarity,
     covered_share,
+    difference_distances,
     explained_distance,
     gaussian_blur,
     hidden_share,
@@ -441,6 +442,37 @@ def test_the_cpu_fast_path_equals_the_torch_reference() -> None:
         assert fast[2] == slow[2]
         assert torch.allclose(fast[0], slow[0], rtol=1e-12, atol=1e-12)
         assert torch.allclose(fast[1], slow[1], rtol=1e-12, atol=1e-12)
+
+
+def test_look_alikes_are_told_apart_where_they_differ() -> None:
+    """Two anchors alike but for a band (another flavour's text): the query, one of them under a gain and bias and
+    noise all over its plane, is explained better by its own anchor, whichever of the pair comes first; a pair that
+    does not differ where the crop shows is NaN (nothing to tell them apart by)."""
+    anchor = textured(1, 64).float()
+    twin = anchor.clone()
+    twin[..., 28:36, 8:56] = twin[..., 28:36, 8:56].flip(-1)  # the band mirrored
+    noise = 0.03 * torch.randn(1, 3, 64, 64, generator=torch.Generator().manual_seed(0))
+    query = torch.where(anchor > 0, 0.7 * anchor + 0.05 + noise, torch.zeros_like(anchor)).clamp(0, 1)
+    pose = shift(0.0, 0.0)
+    pair = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1))
+    swapped = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([twin, anchor], 1))
+    assert float(pair[0, 0]) < 0.2 * float(pair[0, 1])
+    assert pair.flip(1)[0].tolist() == pytest.approx(swapped[0].tolist())
+    # the whole plane's ZNCC tells the two apart far less: the band is an eighth of the plane, under the noise
+    whole = verification_distance(query.repeat(2, 1, 1, 1), pose.repeat(2, 1, 1), torch.cat([anchor, twin]))
+    assert float(whole[0] / whole[1]) > 5 * float(pair[0, 0] / pair[0, 1])
+    # each anchor under its own pose: the same anchor 2 px off explains the query worse (the pixels where the two
+    # poses differ are its edges)
+    slid = difference_distances(query, torch.stack([pose, shift(2.0, 0.0)], 1), torch.stack([anchor, anchor], 1))
+    assert float(slid[0, 0]) < 0.2 * float(slid[0, 1])
+    # the band hidden (the visibility leaves it out): the two do not differ on what the crop shows
+    seen = torch.ones(1, 1, 64, 64)
+    seen[..., 24:40, :] = 0.0
+    hidden = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1), seen)
+    assert bool(hidden.isnan().all())
+    assert difference_distances(query[:0], torch.zeros(0, 2, 3, 3), torch.zeros(0, 2, 3, 64, 64)).shape == (0, 2)
+    with pytest.raises(ValueError, match="two poses and two anchors"):
+        difference_distances(query, pose, torch.stack([anchor, twin], 1))
 
 
 def test_explained_distance_judges_poses_over_the_query_s_own_pixels() -> None:
