@@ -16,6 +16,7 @@ from matl.geometry import compose_query_H_canon
 from matl.inference.fast_refine import FastRefiner
 from matl.inference.images import _with_rows
 from matl.inference.verify import (
+    DIFFERENCE_OVERLAP,
     SECOND_LOOK_HIDDEN,
     CandidatePose,
     Verification,
@@ -238,10 +239,12 @@ class Verifying:
         that product's nearest anchor, without the current answer's product) is compared with the current answer, and
         the closer one is the answer, still verified. ``lookalike_statistic`` says how: ``difference`` (the default)
         where the two anchors, each warped into the crop by its pose, differ (:func:`difference_distances`: the flavour
-        text or the colour band decides, not the shared layout), or one ZNCC over the whole plane (``global``, and
-        where the two do not differ on what the crop shows), never the verification's patches, which keep the best
-        half. ``queries`` ``(B, 3, S, S)``, ``visibility`` ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)``
-        (or None) as verification saw them; ``by_object`` ``(B, O)`` the queries' :meth:`_object_distances`."""
+        text or the colour band decides, not the shared layout; a rival whose plane overlaps the answer's by less than
+        :data:`~matl.inference.verify.DIFFERENCE_OVERLAP` lies elsewhere and is no twin: the answer stays), or one
+        ZNCC over the whole plane (``global``, and where the two do not differ on what the crop shows), never the
+        verification's patches, which keep the best half. ``queries`` ``(B, 3, S, S)``, ``visibility``
+        ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)`` (or None) as verification saw them; ``by_object``
+        ``(B, O)`` the queries' :meth:`_object_distances`."""
         ratio = self.lookalike_ratio
         if ratio is None or len(self.objects) < 2:
             return pred, verification
@@ -285,17 +288,20 @@ class Verifying:
             # each pair's distances (n, 2): where the two anchors differ, or one ZNCC over the whole plane (also
             # where the two do not differ on what the crop shows)
             apart = torch.full((n, 2), float("nan"), dtype=torch.float64)
+            elsewhere = torch.zeros(n, dtype=torch.bool)  # a rival whose plane lies elsewhere in the crop: no twin
             if self.lookalike_statistic == "difference":
-                apart = difference_distances(queries[rows], torch.stack([answer_H, rival_H], 1), images[pair_g],
-                                             seen, self.verify_blur)
-            whole = apart.isnan().any(1)
+                apart, overlap = difference_distances(queries[rows], torch.stack([answer_H, rival_H], 1),
+                                                      images[pair_g], seen, self.verify_blur)
+                elsewhere = overlap < DIFFERENCE_OVERLAP
+            whole = apart.isnan().any(1) & ~elsewhere
             if bool(whole.any()):
                 at_whole = whole.nonzero().flatten()
                 apart[at_whole] = verification_distance(
                     queries[rows][at_whole].repeat(2, 1, 1, 1), torch.cat([answer_H[at_whole], rival_H[at_whole]]),
                     images[pair_g[at_whole].T.flatten()], self.verify_blur, skip_empty=True,
                     statistic="global").view(2, -1).T
-            better = [j for j in range(n) if bool(rival.verified[j]) and float(apart[j, 1]) < float(apart[j, 0])]
+            better = [j for j in range(n) if bool(rival.verified[j]) and not bool(elsewhere[j])
+                      and float(apart[j, 1]) < float(apart[j, 0])]
             if not better:
                 continue
             take = [rows[j] for j in better]

@@ -106,6 +106,9 @@ EXPLAINED_COVER = 0.5
 #: :func:`difference_distances`: two anchors that differ by less than this (the sum over the compared pixels of their
 #: mean absolute channel difference, of 1) are not told apart there (NaN)
 DIFFERENCE_MIN = 0.5
+#: ``lookalike_statistic=difference``: a look-alike whose plane, warped into the crop by its pose, overlaps the
+#: answer's by less than this (intersection over union) lies elsewhere: it does not replace the answer
+DIFFERENCE_OVERLAP = 0.85
 
 
 def anchor_foreground(anchors: torch.Tensor, erode: int = 1) -> torch.Tensor:
@@ -469,7 +472,8 @@ def explained_distance(queries: torch.Tensor, query_H_anchor: torch.Tensor, anch
 
 
 def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, anchors: torch.Tensor,
-                         visibility: torch.Tensor | None = None, blur_sigma: float = 1.0) -> torch.Tensor:
+                         visibility: torch.Tensor | None = None, blur_sigma: float = 1.0
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """Which of two posed anchors explains its query better where the two anchors differ.
 
     Look-alikes (the same layout in another flavour name, colour band, pack size or badge) match a query equally
@@ -489,15 +493,17 @@ def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, an
         visibility: ``(B, 1, S, S)`` the queries' visibility in [0, 1], or None.
         blur_sigma: Gaussian smoothing of the query and the warped anchors, px (0: none).
     Returns:
-        ``(B, 2)`` float64 (lower: explained better); NaN for both where the two anchors differ by less than
-        :data:`DIFFERENCE_MIN` over the compared pixels (nothing to tell them apart by).
+        ``(distances (B, 2), overlap (B,))`` float64: the distances (lower: explained better), NaN for both where the
+        two anchors differ by less than :data:`DIFFERENCE_MIN` over the compared pixels (nothing to tell them apart
+        by); the intersection over union of the two planes in the crop (look-alikes lie on one place, at least
+        :data:`DIFFERENCE_OVERLAP`; two planes elsewhere differ by where they lie, not by their print).
     """
     B = len(queries)
     if query_H_anchor.shape[:2] != (B, 2) or anchors.shape[:2] != (B, 2):
         raise ValueError(f"difference_distances needs two poses and two anchors a query, got "
                          f"{tuple(query_H_anchor.shape)} and {tuple(anchors.shape)} for {B} queries")
     if B == 0:
-        return torch.zeros(0, 2, dtype=torch.float64)
+        return torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)
     S = queries.shape[-1]
     queries = queries.float()
     flat = anchors.flatten(0, 1).to(queries.device, queries.dtype)
@@ -524,8 +530,10 @@ def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, an
             (2, 3), keepdim=True).clamp_min(1e-12)
         residual = (query - query_mean - gain * (anchor - anchor_mean)) ** 2
         distances.append((residual.mean(1, keepdim=True) * weight).sum((1, 2, 3)) / total.clamp_min(1e-12))
-    out = torch.stack(distances, 1)
-    return out.masked_fill((total < DIFFERENCE_MIN)[:, None], float("nan")).cpu()
+    first_plane, second_plane = warped[:, 0, 3] > 0.5, warped[:, 1, 3] > 0.5
+    overlap = (first_plane & second_plane).sum((1, 2)) / (first_plane | second_plane).sum((1, 2)).clamp_min(1)
+    distances = torch.stack(distances, 1).masked_fill((total < DIFFERENCE_MIN)[:, None], float("nan"))
+    return distances.cpu(), overlap.double().cpu()
 
 
 @dataclass

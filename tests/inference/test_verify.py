@@ -10,6 +10,7 @@ import torch
 
 from matl.data.gallery import Gallery
 from matl.inference.verify import (
+    DIFFERENCE_OVERLAP,
     MIN_PATCHES,
     MIN_PIXELS,
     PATCH_CELLS,
@@ -454,8 +455,9 @@ def test_look_alikes_are_told_apart_where_they_differ() -> None:
     noise = 0.03 * torch.randn(1, 3, 64, 64, generator=torch.Generator().manual_seed(0))
     query = torch.where(anchor > 0, 0.7 * anchor + 0.05 + noise, torch.zeros_like(anchor)).clamp(0, 1)
     pose = shift(0.0, 0.0)
-    pair = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1))
-    swapped = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([twin, anchor], 1))
+    pair, overlap = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1))
+    swapped, _ = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([twin, anchor], 1))
+    assert float(overlap[0]) == 1.0
     assert float(pair[0, 0]) < 0.2 * float(pair[0, 1])
     assert pair.flip(1)[0].tolist() == pytest.approx(swapped[0].tolist())
     # the whole plane's ZNCC tells the two apart far less: the band is an eighth of the plane, under the noise
@@ -463,14 +465,22 @@ def test_look_alikes_are_told_apart_where_they_differ() -> None:
     assert float(whole[0] / whole[1]) > 5 * float(pair[0, 0] / pair[0, 1])
     # each anchor under its own pose: the same anchor 2 px off explains the query worse (the pixels where the two
     # poses differ are its edges)
-    slid = difference_distances(query, torch.stack([pose, shift(2.0, 0.0)], 1), torch.stack([anchor, anchor], 1))
+    slid, overlap = difference_distances(query, torch.stack([pose, shift(2.0, 0.0)], 1),
+                                         torch.stack([anchor, anchor], 1))
     assert float(slid[0, 0]) < 0.2 * float(slid[0, 1])
+    # the planes' overlap in the crop says whether the two lie on one place (look-alikes) or elsewhere: the planes
+    # (54 px wide once eroded) 2 px apart overlap by 52 / 56; 12 px apart by 42 / 59 (the shifted one leaves the crop
+    # by 7 px), below DIFFERENCE_OVERLAP
+    assert float(overlap[0]) == pytest.approx(52 / 56, abs=0.01) and float(overlap[0]) >= DIFFERENCE_OVERLAP
+    _, far = difference_distances(query, torch.stack([pose, shift(12.0, 0.0)], 1), torch.stack([anchor, twin], 1))
+    assert float(far[0]) == pytest.approx(42 / 59, abs=0.01) and float(far[0]) < DIFFERENCE_OVERLAP
     # the band hidden (the visibility leaves it out): the two do not differ on what the crop shows
     seen = torch.ones(1, 1, 64, 64)
     seen[..., 24:40, :] = 0.0
-    hidden = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1), seen)
+    hidden, _ = difference_distances(query, torch.stack([pose, pose], 1), torch.stack([anchor, twin], 1), seen)
     assert bool(hidden.isnan().all())
-    assert difference_distances(query[:0], torch.zeros(0, 2, 3, 3), torch.zeros(0, 2, 3, 64, 64)).shape == (0, 2)
+    empty = difference_distances(query[:0], torch.zeros(0, 2, 3, 3), torch.zeros(0, 2, 3, 64, 64))
+    assert empty[0].shape == (0, 2) and empty[1].shape == (0,)
     with pytest.raises(ValueError, match="two poses and two anchors"):
         difference_distances(query, pose, torch.stack([anchor, twin], 1))
 
