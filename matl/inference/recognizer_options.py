@@ -100,7 +100,7 @@ class RecognizerOptions:
     keypoint_pose: str | KeypointPose = "unverified"
     flow_pose: str | FlowPose = "always"
     pose_judge: str = "both"
-    lookalike_ratio: float | None = 1.25
+    lookalike_ratio: float | None = 1.1
     lookalike_statistic: str = "difference"
     uncover: float | None = 0.7
     gallery_fill: float = 1.0

@@ -57,7 +57,7 @@ def test_method_commands_list_predicts_options(tmp_path: Path) -> None:
     open_set = "open_set_quantile=0.94 open_set_statistic=verify calibration_planes=2000 verify_top_k=8 " \
                "verify_shortlist=64 verify_max=0.1 verify_blur=1.0 verify_refine=true verify_statistic=patches " \
                "verify_min_visible=0.3 verify_occluded_copies=0.0 verify_occluder_margin=5 " \
-               "refine_check=judge keypoint_pose=unverified flow_pose=always pose_judge=both lookalike_ratio=1.25 " \
+               "refine_check=judge keypoint_pose=unverified flow_pose=always pose_judge=both lookalike_ratio=1.1 " \
                "lookalike_statistic=difference uncover=0.7"
     refined = MethodRun.of("matl_refine", cfg, shared, Path("/bench/clean/p.jsonl"))
     assert refined.command == (f"python -m matl.predict {files} threshold=null {open_set} refine=true "

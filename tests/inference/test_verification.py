@@ -126,7 +126,7 @@ def test_a_look_alike_is_told_apart(tmp_path: Path, statistic: str) -> None:
     timer = StageTimer()
     timed.enrol(gallery, cache=False).time_stages(timer)
     assert timed.predict(query).object == "red_box" and timer.ms["lookalikes"] > 0.0
-    assert stub_recognizer().options()["lookalike_ratio"] == 1.25  # the default
+    assert stub_recognizer().options()["lookalike_ratio"] == 1.1  # the default
     for bad in (0.9, "near", float("nan")):
         with pytest.raises(MatlError, match=r"lookalike_ratio=.* is invalid: use a factor >= 1"):
             stub_recognizer(lookalike_ratio=bad)
