@@ -16,7 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-from matl.evaluation.catalog import catalog_table, plot_catalog
+from matl.evaluation.catalog import catalog_table, catalog_title, plot_catalog
 
 
 def main() -> None:
@@ -35,10 +35,7 @@ def main() -> None:
             raise SystemExit(f"catalog_figure: {path} is from an unfinished run: let it finish or run it again")
         commands.append(data["command"])
         rows += data["rows"]
-        node = data["catalog"]
-        title = title or (f"catalogue of held-out products ({node['lookalike_share']:.0%} in look-alike families), "
-                          f"{data['queries']} photometric queries per size; query_ms at "
-                          f"{data['timing']['threads']} thread(s)")
+        title = title or catalog_title(data["catalog"]["lookalike_share"], data["queries"], data["timing"]["threads"])
     sizes = [r["products"] for r in rows]
     twice = sorted({n for n in sizes if sizes.count(n) > 1})
     if twice:

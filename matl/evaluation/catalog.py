@@ -241,6 +241,12 @@ def run_size(cfg: DictConfig, cs: CanonicalSet, products: list[CatalogProduct], 
 
 
 # ------------------------------------------------------------------------------------------ all sizes
+def catalog_title(lookalike_share: float, queries: int, threads: int) -> str:
+    """The catalogue figure's title: the look-alike share, the queries per size and the timing's threads."""
+    return (f"catalogue of held-out products ({lookalike_share:.0%} in look-alike families), "
+            f"{queries} photometric queries per size; query_ms at {threads} thread(s)")
+
+
 def plot_catalog(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     """Accuracy (left) and ``query_ms`` (right, log) against gallery size (log) of every row, per method."""
     import matplotlib
@@ -326,9 +332,8 @@ def run_catalog(cfg: DictConfig, ckpt_path: Path, image_size: int, out: Path) ->
         write_json(out / "catalog.json", {"command": own_command(), "rows": rows, "complete": False})  # so far
     command = own_command()
     node = OmegaConf.to_container(cfg.catalog, resolve=True)
-    title = (f"catalogue of held-out products ({node['lookalike_share']:.0%} in look-alike families), "
-             f"{cfg.queries} photometric queries per size; query_ms at {cfg.timing.threads} thread(s)")
-    plot = plot_catalog(rows, out / "catalog.png", title)
+    plot = plot_catalog(rows, out / "catalog.png", catalog_title(node["lookalike_share"], cfg.queries,
+                                                                 cfg.timing.threads))
     data = {"command": command, "rows": rows, "columns": list(ROW_KEYS), "catalog": node,
             "generator": repr(catalog), "checkpoint": str(ckpt_path), "image_size": image_size,
             "file_size": file_size, "queries": int(cfg.queries), "query_seed": int(cfg.query_seed),

@@ -612,7 +612,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         covering: dict[int, Covering] = {}  # uncover: what lies across a row's answer
         taken = None  # (the features, their per-product distances): kept for the open-set answer while they hold
         if (verification is not None and pred.query_H_anchor is not None and pred.features is not None
-                and self.lookalike_ratio is not None):  # a near twin compared over the whole plane
+                and self.lookalike_ratio is not None):  # a near twin compared with the answer
             taken = (pred.features, self._object_distances(pred.features))
             with stage(self.stage_timer, "lookalikes"):
                 pred, verification = self._lookalikes(queries, pred, verification, visibility,

@@ -512,7 +512,8 @@ def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, an
     warped = sample_by_normalised(torch.cat([flat, plane], 1),
                                   pixel_to_normalised(anchor_H_query, (S, S)).to(queries.dtype)).view(B, 2, 4, S, S)
     seen = (queries.amax(1, keepdim=True) > 0) if visibility is None else visibility.to(queries.device) > 0.5
-    region = (seen & (warped[:, 0, 3:4] > 0.5) & (warped[:, 1, 3:4] > 0.5)).to(queries.dtype)
+    first_plane, second_plane = warped[:, 0, 3:4] > 0.5, warped[:, 1, 3:4] > 0.5  # (B, 1, S, S) each
+    region = (seen & first_plane & second_plane).to(queries.dtype)
     images = torch.cat([queries, warped[:, 0, :3], warped[:, 1, :3]])
     if blur_sigma > 0:
         images = gaussian_blur(images, blur_sigma)
@@ -530,8 +531,7 @@ def difference_distances(queries: torch.Tensor, query_H_anchor: torch.Tensor, an
             (2, 3), keepdim=True).clamp_min(1e-12)
         residual = (query - query_mean - gain * (anchor - anchor_mean)) ** 2
         distances.append((residual.mean(1, keepdim=True) * weight).sum((1, 2, 3)) / total.clamp_min(1e-12))
-    first_plane, second_plane = warped[:, 0, 3] > 0.5, warped[:, 1, 3] > 0.5
-    overlap = (first_plane & second_plane).sum((1, 2)) / (first_plane | second_plane).sum((1, 2)).clamp_min(1)
+    overlap = (first_plane & second_plane).sum((1, 2, 3)) / (first_plane | second_plane).sum((1, 2, 3)).clamp_min(1)
     distances = torch.stack(distances, 1).masked_fill((total < DIFFERENCE_MIN)[:, None], float("nan"))
     return distances.cpu(), overlap.double().cpu()
 
