@@ -109,6 +109,7 @@ from matl.inference.recognizer_options import OPEN_SET_STATISTICS, RecognizerOpt
 from matl.inference.refine import PhotometricRefiner, RefinedRecognizer
 from matl.inference.runtime import runtime_path
 from matl.inference.verification import VERIFY_CHUNK, Verifying
+from matl.inference.verify import CandidateMemo
 from matl.models.checkpoint import (
     PRETRAINED,
     PRETRAINED_FAST,
@@ -608,7 +609,8 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         with stage(self.stage_timer, "foreground"):
             # (masked, rgb, alpha found or None), the crops over torch's threads
             prepared = thread_map(functools.partial(mask_query, self.foreground), arrays)
-        pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared)
+        memo = CandidateMemo()  # the candidates verification poses, met again by the look-alike comparison
+        pred, queries, query_H_file, verification, visibility = self._answer(recognizer, prepared, memo)
         covering: dict[int, Covering] = {}  # uncover: what lies across a row's answer
         taken = None  # (the features, their per-product distances): kept for the open-set answer while they hold
         if (verification is not None and pred.query_H_anchor is not None and pred.features is not None
@@ -616,7 +618,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
             taken = (pred.features, self._object_distances(pred.features))
             with stage(self.stage_timer, "lookalikes"):
                 pred, verification = self._lookalikes(queries, pred, verification, visibility,
-                                                      _upscale(query_H_file), taken[1][0])
+                                                      _upscale(query_H_file), taken[1][0], memo)
         if verification is not None and self.keypoint_pose.active and pred.query_H_anchor is not None:
             # before the foreground's retries: a hidden product posed by its keypoints verifies, and is not retried
             pred, verification = self._keypoint_poses(prepared, pred, query_H_file, verification)

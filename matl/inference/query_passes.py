@@ -30,7 +30,7 @@ from matl.inference.uncover import (
     lies_on_top,
     plane_in_query,
 )
-from matl.inference.verify import Verification, covered_share, shown_pixels
+from matl.inference.verify import CandidateMemo, Verification, covered_share, shown_pixels
 from matl.models.prediction import Prediction
 from matl.utils.threads import thread_map
 from matl.utils.timing import stage
@@ -50,12 +50,14 @@ class QueryPasses:
     """The query side of :class:`~matl.inference.api.Recognizer` between the foreground step and the answer; a mixin
     of it, using its networks, verification and foreground step."""
 
-    def _answer(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+    def _answer(self, recognizer: Any, prepared: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                memo: CandidateMemo | None = None
                 ) -> tuple[Prediction, torch.Tensor, torch.Tensor, Verification | None, torch.Tensor | None]:
         """The verified model-frame answer of queries prepared by :func:`mask_query`: the prediction (re-ranked
         by verification), the model-size queries ``(B, 3, S, S)`` of the last foreground pass, ``model_H_file``
         ``(B, 3, 3)``, the verification (None without one) and the queries' visibility ``(B, 1, S, S)`` (None: no
-        query has a mask)."""
+        query has a mask). ``memo``: where verification keeps the candidates it posed, each query by its row, for
+        later passes over the same queries (the look-alike comparison)."""
         with stage(self.stage_timer, "framing"):
             fitted = [fit_to_model(masked, self.image_size, self.query_fill) for masked, _, _ in prepared]
             queries = torch.stack([f[0] for f in fitted]).to(self.device)
@@ -68,7 +70,8 @@ class QueryPasses:
         if self._verifying() and pred.query_H_anchor is not None:
             with stage(self.stage_timer, "verification"):
                 verification = self._verify(queries, (pred.gallery_index, pred.query_H_anchor, pred.distance),
-                                            visibility=visibility, upscale=upscale)
+                                            visibility=visibility, upscale=upscale, memo=memo,
+                                            keys=None if memo is None else list(range(len(queries))))
                 pred = self._reranked(pred, verification)
         return pred, queries, query_H_file, verification, visibility
 

@@ -8,6 +8,7 @@ fast refinement with ``verify_refine``) and the first that verifies becomes the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import torch
@@ -18,12 +19,14 @@ from matl.inference.images import _with_rows
 from matl.inference.verify import (
     DIFFERENCE_OVERLAP,
     SECOND_LOOK_HIDDEN,
+    CandidateMemo,
     CandidatePose,
     Verification,
     candidate_distances,
     difference_distances,
     explained_distance,
     hidden_share,
+    memo_poses,
     verification_distance,
     verify_candidates,
 )
@@ -36,6 +39,14 @@ VERIFY_CHUNK = 32  # queries verified together (each with up to verify_top_k can
 LOOKALIKE_RIVALS = 3
 
 
+def _posed_rows(pose: CandidatePose, queries: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor,
+                warped: torch.Tensor, visibility: torch.Tensor | None, upscale: torch.Tensor | None, rows: list[int]
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``pose`` (a :data:`~matl.inference.verify.CandidatePose`) of the rows ``rows`` of its arguments."""
+    return pose(queries[rows], index[rows], stn_H[rows], warped[rows], None if visibility is None else visibility[rows],
+                None if upscale is None else upscale[rows])
+
+
 class Verifying:
     """The verification side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its gallery
     recognizer, refiner and ``verify_*`` options."""
@@ -46,16 +57,21 @@ class Verifying:
 
     def _verify(self, queries: torch.Tensor, first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 exclude_object: torch.Tensor | None = None, visibility: torch.Tensor | None = None,
-                upscale: torch.Tensor | None = None) -> Verification:
+                upscale: torch.Tensor | None = None,
+                embedded: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                memo: CandidateMemo | None = None, keys: list[int] | None = None) -> Verification:
         """:func:`~matl.inference.verify.verify_candidates` with this recognizer's settings, in chunks; the
         queries' empty (all-zero: transparent) pixels are left out of the comparison, and ``verify_statistic=patches``
         weighs the rest by the queries' ``visibility`` ``(Q, 1, S, S)`` (None: ones); ``upscale`` ``(Q,)``: each file's
-        enlargement to the model's size, for the candidates' refinement."""
+        enlargement to the model's size, for the candidates' refinement; ``embedded``, ``memo`` and ``keys`` as
+        ``verify_candidates``' (the queries' STN poses, warps and gallery distances already computed; candidates
+        already posed)."""
         inner, chunks, step = self._gallery_recognizer(), [], VERIFY_CHUNK
         pose = self._candidate_pose() if self.verify_refine else None
         first_refined = first is not None and self.refiner is not None
         for i in range(0, len(queries), step):
             part = None if first is None else tuple(t[i:i + step] for t in first)
+            given = None if embedded is None else tuple(t[i:i + step] for t in embedded)
             chunks.append(verify_candidates(inner, queries[i:i + step], self.verify_top_k, self.verify_max,
                                             self.verify_blur, part,
                                             None if exclude_object is None else exclude_object[i:i + step],
@@ -63,7 +79,8 @@ class Verifying:
                                             visibility=None if visibility is None else visibility[i:i + step],
                                             upscale=None if upscale is None else upscale[i:i + step],
                                             statistic=self.verify_statistic, min_visible=self.verify_min_visible,
-                                            shortlist=self.verify_shortlist))
+                                            shortlist=self.verify_shortlist, embedded=given, memo=memo,
+                                            keys=None if keys is None else keys[i:i + step]))
         return Verification(*(torch.cat([getattr(c, f.name) for c in chunks])
                               for f in dataclasses.fields(Verification)))
 
@@ -231,8 +248,8 @@ class Verifying:
         return pose
 
     def _lookalikes(self, queries: torch.Tensor, pred: Prediction, verification: Verification,
-                    visibility: torch.Tensor | None, upscale: torch.Tensor | None, by_object: torch.Tensor
-                    ) -> tuple[Prediction, Verification]:
+                    visibility: torch.Tensor | None, upscale: torch.Tensor | None, by_object: torch.Tensor,
+                    memo: CandidateMemo | None = None) -> tuple[Prediction, Verification]:
         """``lookalike_ratio``: each verified answer meets the other products within ``lookalike_ratio`` times its own
         feature distance (look-alikes: the same layout in another flavour, colour band, size or badge), nearest
         first, at most :data:`LOOKALIKE_RIVALS` of them: each one's best candidate that verifies (:meth:`_verify` from
@@ -244,7 +261,9 @@ class Verifying:
         ZNCC over the whole plane (``global``, and where the two do not differ on what the crop shows), never the
         verification's patches, which keep the best half. ``queries`` ``(B, 3, S, S)``, ``visibility``
         ``(B, 1, S, S)`` (or None) and ``upscale`` ``(B,)`` (or None) as verification saw them; ``by_object``
-        ``(B, O)`` the queries' :meth:`_object_distances`."""
+        ``(B, O)`` the queries' :meth:`_object_distances`; ``memo``: the candidates verification already posed for
+        these queries, each by its row (:class:`~matl.inference.verify.CandidateMemo`; None: a new one). Each
+        rival's candidates are posed once however many rivals meet them."""
         ratio = self.lookalike_ratio
         if ratio is None or len(self.objects) < 2:
             return pred, verification
@@ -266,6 +285,7 @@ class Verifying:
         _, stn_H, warped, d = candidate_distances(inner, queries[tied], None)
         objects = inner.gallery.object_index.to(d.device)
         pose = self._candidate_pose() if self.verify_refine else None
+        memo = CandidateMemo() if memo is None else memo  # a query's rivals meet much the same candidates
         for rank in range(LOOKALIKE_RIVALS):
             at = [j for j, i in enumerate(tied) if rank < len(rivals[i])]
             if not at:
@@ -277,10 +297,11 @@ class Verifying:
             factor = None if upscale is None else torch.as_tensor(upscale)[rows]
             # posed as the answers' further candidates are (not by the alignment stage, which a refined recognizer
             # skips), then verification's candidates without the current answer's product
-            posed = stn_H[at] if pose is None else pose(queries[rows], nearest, stn_H[at], warped[at], seen,
-                                                         factor)[0]
+            posed = stn_H[at] if pose is None else memo_poses(memo, rows, nearest, stn_H[at], functools.partial(
+                _posed_rows, pose, queries[rows], nearest, stn_H[at], warped[at], seen, factor))
             rival = self._verify(queries[rows], first=(nearest, posed, nearest_d),
-                                 exclude_object=pred.object_index[rows].cpu(), visibility=seen, upscale=factor)
+                                 exclude_object=pred.object_index[rows].cpu(), visibility=seen, upscale=factor,
+                                 embedded=(stn_H[at], warped[at], d[at]), memo=memo, keys=rows)
             answer_H, rival_H = pred.query_H_anchor[rows].double().cpu(), rival.query_H_anchor.double().cpu()
             answer_g, rival_g = pred.gallery_index[rows].cpu(), rival.gallery_index.cpu()
             n = len(rows)

@@ -48,10 +48,10 @@ from numba import njit
 from matl.data.gallery import WHOLE_CELL
 from matl.geometry import pixel_to_normalised, sample_by_normalised
 
-__all__ = ["LOOKALIKE_STATISTICS", "VERIFY_STATISTICS", "CandidatePose", "Verification", "aligned_queries",
-           "anchor_foreground", "away_from_hidden", "candidate_distances", "coarse_similarity", "difference_distances",
-           "explained_distance", "hidden_share",
-           "patch_distances", "subject_share", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
+__all__ = ["LOOKALIKE_STATISTICS", "VERIFY_STATISTICS", "CandidateMemo", "CandidatePose", "Verification",
+           "aligned_queries", "anchor_foreground", "away_from_hidden", "candidate_distances", "coarse_similarity",
+           "difference_distances", "explained_distance", "hidden_share", "memo_poses", "patch_distances",
+           "subject_share", "verification_distance", "verify_candidates", "weighted_zncc", "zncc"]
 
 #: ``pose(queries, gallery_index, stn_H, warped, visibility or None, upscale or None) -> (query_H_anchor verified,
 #: query_H_anchor an answer carries)`` of candidates (:func:`verify_candidates`)
@@ -558,14 +558,89 @@ class Verification:
     tried: torch.Tensor
 
 
+class CandidateMemo:
+    """Candidates already posed (and compared) for a query, by the query's key and the candidate's gallery anchor: the
+    look-alike rivals of one answer are each verified against much the same anchors (the nearest without the
+    answer's product), and a candidate's pose and distance depend on the query and the anchor alone (each posed from
+    the query's STN pose), so each pair is posed once. Entries: ``(verified pose (3, 3), answer's pose (3, 3),
+    verification distance or None)``; valid for one set of verification settings and one gallery."""
+
+    def __init__(self) -> None:
+        self._pairs: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor, float | None]] = {}
+
+    def __len__(self) -> int:
+        return len(self._pairs)
+
+    def get(self, key: int, anchor: int) -> tuple[torch.Tensor, torch.Tensor, float | None] | None:
+        return self._pairs.get((key, anchor))
+
+    def put(self, key: int, anchor: int, verified: torch.Tensor, answer: torch.Tensor,
+            distance: float | None = None) -> None:
+        self._pairs[(key, anchor)] = (verified, answer, distance)
+
+
+def _posed_pairs(memo: CandidateMemo | None, keys: list[int] | None, anchors: torch.Tensor, start: torch.Tensor,
+                 pose: Callable[[list[int]], tuple[torch.Tensor, torch.Tensor]],
+                 compare: Callable[[list[int], torch.Tensor], torch.Tensor]
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The poses and distances of ``P`` (query, candidate) pairs, the query of pair ``p`` keyed ``keys[p]`` in
+    ``memo`` (None: no memo) and its candidate ``anchors[p]``: ``pose(pairs)`` poses the pairs listed (``(verified
+    (n, 3, 3), answer's (n, 3, 3))``), ``compare(pairs, verified)`` compares them (``(n,)``); with a memo only the
+    pairs it lacks, and they are added to it.
+    ``start`` ``(P, 3, 3)`` gives the dtype and device of the poses. Returns ``(verified (P, 3, 3), answer's
+    (P, 3, 3), distance (P,) float64)``."""
+    every = list(range(len(anchors)))
+    if memo is None or keys is None:
+        verified, answer = pose(every)
+        return verified, answer, compare(every, verified).double().cpu()
+    found = [memo.get(k, int(a)) for k, a in zip(keys, anchors.tolist(), strict=True)]
+    missing = [p for p, f in enumerate(found) if f is None]
+    verified, answer = start.clone(), start.clone()
+    distance = torch.zeros(len(keys), dtype=torch.float64)
+    if missing:
+        new_verified, new_answer = pose(missing)
+        verified[missing], answer[missing] = new_verified.to(start), new_answer.to(start)
+    for p, f in enumerate(found):
+        if f is not None:
+            verified[p], answer[p] = f[0].to(start), f[1].to(start)
+            if f[2] is not None:
+                distance[p] = f[2]
+    unknown = [p for p in every if found[p] is None or found[p][2] is None]
+    if unknown:
+        distance[unknown] = compare(unknown, verified[unknown]).double().cpu()
+    for p in every:
+        memo.put(keys[p], int(anchors[p]), verified[p], answer[p], float(distance[p]))
+    return verified, answer, distance
+
+
+def memo_poses(memo: CandidateMemo, keys: list[int], anchors: torch.Tensor, start: torch.Tensor,
+               pose: Callable[[list[int]], tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """The verified poses ``(P, 3, 3)`` (as ``start``'s dtype) of ``P`` (query, candidate) pairs, query ``keys[p]``
+    and gallery anchor ``anchors[p]``: from ``memo`` where it has the pair, else by ``pose(pairs)`` (``(verified,
+    answer's)`` of the pairs listed), which are added to it."""
+    found = [memo.get(k, int(a)) for k, a in zip(keys, anchors.tolist(), strict=True)]
+    missing = [p for p, f in enumerate(found) if f is None]
+    posed = start.clone()
+    if missing:
+        verified, answer = pose(missing)
+        for m, v, a in zip(missing, verified, answer, strict=True):
+            memo.put(keys[m], int(anchors[m]), v, a)
+            posed[m] = v.to(posed)
+    for p, f in enumerate(found):
+        if f is not None:
+            posed[p] = f[0].to(posed)
+    return posed
+
+
 @torch.no_grad()
 def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify_max: float, blur_sigma: float = 1.0,
                       first: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                       exclude_object: torch.Tensor | None = None, skip_empty: bool = False,
                       candidate_pose: CandidatePose | None = None, first_refined: bool = True,
                       visibility: torch.Tensor | None = None, upscale: torch.Tensor | None = None,
-                      statistic: str = "global", min_visible: float = MIN_VISIBLE, shortlist: int = 0
-                      ) -> Verification:
+                      statistic: str = "global", min_visible: float = MIN_VISIBLE, shortlist: int = 0,
+                      embedded: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                      memo: CandidateMemo | None = None, keys: list[int] | None = None) -> Verification:
     """Verify the ``top_k`` nearest gallery anchors of each query; the first, nearest first, that verifies wins
     (with ``shortlist``: more candidates, and the closest that verifies wins).
 
@@ -606,12 +681,26 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
             :data:`SHORTLIST_SUBJECT` of what the crop shows (:func:`subject_share`: the crop's subject, not a
             neighbour beside it); of the candidates that verify, the one with the lowest distance wins. 0 (or at
             most ``top_k``): the features' order alone.
+        embedded: ``(STN query_H_anchor (Q, 3, 3), s(queries) (Q, 3, S, S), distances (Q, G) to every anchor)`` of
+            these queries (:func:`candidate_distances` without exclusion) when already computed; None: computed here.
+        memo: candidates already posed for these queries (:class:`CandidateMemo`, each query by ``keys[q]``): a pair
+            in it is not posed again, and the pairs posed here are added (None: every pair posed).
     """
     g = recognizer.gallery
     n = len(queries)
+    if memo is not None and (keys is None or len(keys) != n):
+        raise ValueError(f"verify_candidates: a memo needs one key per query ({n}), got {keys}")
+    given = embedded
     embedded = None
+    if first is None and given is not None:
+        _, stn_H, warped, d = None, *given
+        if exclude_object is not None:
+            own = g.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
+            d = d.masked_fill(own, float("inf"))
+        embedded = (None, stn_H, warped, d)
     if first is None:  # the nearest (allowed) anchor, posed as the recognizer poses it
-        embedded = candidate_distances(recognizer, queries, exclude_object)
+        if embedded is None:
+            embedded = candidate_distances(recognizer, queries, exclude_object)
         _, stn_H, warped, d = embedded
         nearest_d, nearest = d.min(1)
         H = stn_H
@@ -631,7 +720,12 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     x = queries[todo]
     seen = None if visibility is None else visibility[todo.to(visibility.device)]
     factor = None if upscale is None else torch.as_tensor(upscale)[todo]
-    if embedded is None:
+    if embedded is None and given is not None:
+        stn_H, warped, d = (t[todo.to(t.device)] for t in given)
+        if exclude_object is not None:
+            own = g.object_index.to(d.device)[None, :] == exclude_object[todo].to(d.device)[:, None]
+            d = d.masked_fill(own, float("inf"))
+    elif embedded is None:
         _, stn_H, warped, d = candidate_distances(recognizer, x, None if exclude_object is None else
                                                    exclude_object[todo])
     else:
@@ -659,17 +753,27 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     usable = torch.isfinite(cand_d).cpu()           # (T, k) an excluded product leaves fewer
     t, j = torch.nonzero(usable, as_tuple=True)     # every usable (query, candidate) pair, one batch
     anchors = g.images[cand[t, j]]
-    H = stn_H[t]
-    answer_H = None  # the pose an answer carries, when not the verified one
     seen_t = None if seen is None else seen[t.to(seen.device)]
-    if candidate_pose is not None:
-        H, answer_H = candidate_pose(x[t], cand[t, j], H, warped[t], seen_t, None if factor is None else factor[t])
-    elif getattr(recognizer, "align", None) is not None:
-        H = recognizer.align.infer(x[t], anchors, H, warped[t]).query_H_anchor
+
+    def posed_by(pairs: list[int]) -> tuple[torch.Tensor, torch.Tensor]:  # (verified, answer's) of the pairs
+        at, H = t[pairs], stn_H[t[pairs]]
+        if candidate_pose is not None:
+            return candidate_pose(x[at], cand[at, j[pairs]], H, warped[at],
+                                  None if seen_t is None else seen_t[pairs], None if factor is None else factor[at])
+        if getattr(recognizer, "align", None) is not None:
+            H = recognizer.align.infer(x[at], anchors[pairs], H, warped[at]).query_H_anchor
+        return H, H
+
+    def compared(pairs: list[int], H: torch.Tensor) -> torch.Tensor:
+        return verification_distance(x[t[pairs]], H, anchors[pairs], blur_sigma,
+                                     visibility=None if seen_t is None else seen_t[pairs], **compare)
+
+    H, answer_H, pair_v = _posed_pairs(memo, None if keys is None else [keys[int(todo[q])] for q in t.tolist()],
+                                       cand[t, j].cpu(), stn_H[t], posed_by, compared)
     v = torch.full((len(todo), k), float("inf"), dtype=torch.float64)
-    v[t, j] = verification_distance(x[t], H, anchors, blur_sigma, visibility=seen_t, **compare)
+    v[t, j] = pair_v
     poses = torch.zeros(len(todo), k, 3, 3, dtype=torch.float64)
-    poses[t, j] = (H if answer_H is None else answer_H).cpu().double()
+    poses[t, j] = answer_H.cpu().double()
     ok = v <= limit
     if widened:  # a candidate taken by its pixels is the crop's subject
         ti, tj = torch.nonzero(ok[:, features_k:], as_tuple=True)

@@ -16,15 +16,18 @@ from matl.inference.verify import (
     PATCH_CELLS,
     SHORTLIST_EXTRA,
     SHORTLIST_VERIFY_MAX,
+    CandidateMemo,
     aligned_queries,
     anchor_foreground,
     away_from_hidden,
+    candidate_distances,
     coarse_similarity,
     covered_share,
     difference_distances,
     explained_distance,
     gaussian_blur,
     hidden_share,
+    memo_poses,
     patch_distances,
     shown_pixels,
     subject_share,
@@ -265,6 +268,55 @@ def test_a_given_answer_is_not_changed_in_place_and_candidate_poses_are_used() -
     seen.clear()
     verify_candidates(rec, queries, 3, 0.1, first=first, candidate_pose=pose, first_refined=True, upscale=twice)
     assert seen == [[1, 2]]
+
+
+def test_candidates_posed_once_are_taken_from_the_memo() -> None:
+    anchors = torch.cat([textured(seed) for seed in range(30, 36)])                 # 6 products, one anchor each
+    queries = torch.cat([anchors[4:5].clone(), textured(50)])                        # product 4; one unlike any
+    queries[0, 0, 0, 0], queries[1, 0, 0, 0] = 0.0, 1.0
+    rec = StubRecognizer(anchors, list(range(6)), torch.arange(6, dtype=torch.float64)[:, None],
+                         torch.tensor([[0.0], [0.0]]))
+    posed: list[list[int]] = []
+
+    def pose(x: torch.Tensor, index: torch.Tensor, stn_H: torch.Tensor, warped: torch.Tensor,
+             visibility: torch.Tensor | None, upscale: torch.Tensor | None):
+        posed.append(index.tolist())
+        return stn_H, stn_H
+
+    first = (torch.tensor([0, 0]), torch.eye(3).repeat(2, 1, 1), torch.tensor([0.0, 0.0]))
+    plain = verify_candidates(rec, queries, 5, 0.1, first=first, candidate_pose=pose)
+    assert posed == [[1, 2, 3, 4, 1, 2, 3, 4]]
+    memo = CandidateMemo()
+    keys = [7, 9]                                                                   # the queries' rows elsewhere
+    posed.clear()
+    once = verify_candidates(rec, queries, 5, 0.1, first=first, candidate_pose=pose, memo=memo, keys=keys)
+    assert posed == [[1, 2, 3, 4, 1, 2, 3, 4]] and len(memo) == 8
+    posed.clear()
+    again = verify_candidates(rec, queries, 5, 0.1, first=first, candidate_pose=pose, memo=memo, keys=keys)
+    assert posed == []                                                               # every pair from the memo
+    # a rival's search without product 4 meets the same anchors but 4, and one more: only that one is posed
+    posed.clear()
+    without = verify_candidates(rec, queries, 6, 0.1, first=first, candidate_pose=pose,
+                                exclude_object=torch.tensor([4, 4]), memo=memo, keys=keys)
+    assert posed == [[5, 5]] and without.verified.tolist() == [False, False]
+    for v in (once, again):
+        for name in ("gallery_index", "query_H_anchor", "distance", "verified", "tried"):
+            assert torch.equal(getattr(v, name), getattr(plain, name))
+    assert plain.gallery_index.tolist() == [4, 0] and plain.verified.tolist() == [True, False]
+    # the STN poses, warps and distances given (computed once by the caller) answer as computed here
+    _, stn_H, warped, d = candidate_distances(rec, queries, None)
+    given = verify_candidates(rec, queries, 5, 0.1, first=first, candidate_pose=pose, embedded=(stn_H, warped, d))
+    assert torch.equal(given.gallery_index, plain.gallery_index) and torch.equal(given.distance, plain.distance)
+    excluded = verify_candidates(rec, queries, 5, 0.1, exclude_object=torch.tensor([4, 4]), embedded=(stn_H, warped, d))
+    assert excluded.verified.tolist() == [False, False]
+    with pytest.raises(ValueError, match="one key per query"):
+        verify_candidates(rec, queries, 5, 0.1, first=first, memo=CandidateMemo(), keys=[1])
+    # the verified poses of pairs: from the memo where it has them, the rest posed and added
+    fresh = CandidateMemo()
+    fresh.put(3, 1, 2 * torch.eye(3), torch.eye(3))
+    got = memo_poses(fresh, [3, 3], torch.tensor([1, 2]), torch.zeros(2, 3, 3),
+                     lambda pairs: (torch.eye(3).repeat(len(pairs), 1, 1), torch.eye(3).repeat(len(pairs), 1, 1)))
+    assert torch.equal(got[0], 2 * torch.eye(3)) and torch.equal(got[1], torch.eye(3)) and len(fresh) == 2
 
 
 def test_a_pose_that_puts_the_plane_over_no_query_data_is_not_compared() -> None:
