@@ -407,6 +407,7 @@ class Recognizer(Enrolment, OpenSetCalibration, Verifying, QueryPasses, Keypoint
         predictor = RefinedRecognizer(recognizer, self.refiner, check=check) if self.refiner is not None else recognizer
         self._built = (predictor, gallery)
         self._built_planes = list(self._planes)
+        self._precompute_keypoints()
         return self._built
 
     def _reused_anchors(self) -> torch.Tensor | None:

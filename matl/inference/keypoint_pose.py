@@ -81,6 +81,9 @@ class KeypointPose(StageSettings):
             planes have most keypoint inliers (at least ``min_inliers``) where that product has at least this many
             more than the answered one (which counts 0 without a keypoint pose); still not verified, so the open
             set judges it by its statistic. None: the answer stays the nearest product's.
+        precompute: a gallery of at most this many planes gets every plane's keypoints when it is built (at
+            enrolment, and for the planes an add brings), so that no query waits for them; a larger one computes a
+            plane's at the first query that needs them (about 14 ms a plane at one thread, and up to 256 kB held).
     """
 
     mode: str = "none"
@@ -93,6 +96,7 @@ class KeypointPose(StageSettings):
     contrast_threshold: float = 0.04
     max_features: int = 500
     switch_margin: int | None = 3
+    precompute: int = 1024
 
     def __post_init__(self) -> None:
         if self.mode not in KEYPOINT_POSE_MODES:
@@ -114,6 +118,9 @@ class KeypointPose(StageSettings):
         if margin is not None and (isinstance(margin, bool) or not isinstance(margin, int) or margin < 0):
             raise MatlError(f"KeypointPose switch_margin={margin!r} is invalid: use an integer number of inliers >= 0, "
                             "or None to keep the nearest product")
+        if isinstance(self.precompute, bool) or not isinstance(self.precompute, int) or self.precompute < 0:
+            raise MatlError(f"KeypointPose precompute={self.precompute!r} is invalid: use an integer number of planes "
+                            ">= 0 (0: every plane's keypoints at their first need)")
         if self.method not in RANSAC_METHODS:
             raise MatlError(f"KeypointPose method={self.method!r} is invalid: use {', '.join(RANSAC_METHODS)}")
         self.ratio, self.reproj_threshold = float(self.ratio), float(threshold)
@@ -175,6 +182,17 @@ class _Candidate(NamedTuple):
 class KeypointPoses:
     """The keypoint side of :class:`~matl.inference.api.Recognizer`; a mixin of it, using its planes, gallery,
     refiner, verification options and ``keypoint_pose`` settings."""
+
+    def _precompute_keypoints(self) -> None:
+        """Every enrolled plane's keypoints that are not computed yet, when the keypoint pose is on and the gallery
+        has at most ``keypoint_pose.precompute`` planes (the planes over torch's threads)."""
+        settings: KeypointPose = self.keypoint_pose
+        if not settings.active or len(self._planes) > settings.precompute:
+            return
+        missing = [i for i, p in enumerate(self._planes) if p.keypoints is None]
+        for i, features in zip(missing, thread_map(lambda i: settings.plane_features(self._planes[i].canon_u8),
+                                                   missing), strict=True):
+            self._planes[i].keypoints = features
 
     def _plane_keypoints(self, plane: int) -> ImageFeatures:
         """Enrolled plane ``plane``'s keypoints, computed at its first need and kept with the plane."""

@@ -82,6 +82,24 @@ def test_a_hidden_product_is_posed_by_its_visible_keypoints(gallery: Path) -> No
     assert rec.options()["keypoint_pose"]["mode"] == "unverified"
 
 
+def test_the_planes_keypoints_are_computed_when_a_small_gallery_is_built(gallery: Path) -> None:
+    query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
+    ready = wrong_pose_recognizer().enrol(gallery, cache=False)  # keypoint_pose=unverified, precompute 1024 planes
+    lazy = wrong_pose_recognizer(keypoint_pose=KeypointPose(mode="unverified", precompute=1)).enrol(gallery,
+                                                                                                    cache=False)
+    ready._build(), lazy._build()
+    assert all(p.keypoints is not None for p in ready._planes)     # no query waits for them
+    assert all(p.keypoints is None for p in lazy._planes)          # 2 planes > 1: each at its first need
+    first, second = ready.predict(query), lazy.predict(query)
+    assert first.object == second.object == "red_box" and error_px(first.H) < 3.0
+    np.testing.assert_array_equal(first.H, second.H)               # the same keypoints either way
+    assert {p.object for p in lazy._planes if p.keypoints is not None} == {"red_box"}  # the answered product's only
+    # off: nothing computed
+    off = wrong_pose_recognizer(keypoint_pose="none").enrol(gallery, cache=False)
+    off._build()
+    assert all(p.keypoints is None for p in off._planes)
+
+
 def test_a_pose_that_verifies_is_left_alone_and_a_worse_one_never_taken(gallery: Path) -> None:
     query = hidden_query(print_like(0, (0.8, 0.2, 0.1)))
     # unverified: an answer that verifies is not matched (verify_max=2 verifies every pose, the wrong one too)
@@ -116,7 +134,8 @@ def test_match_finds_the_plane_and_its_pose_in_model_pixels() -> None:
 @pytest.mark.parametrize(("key", "value", "named"), [
     ("mode", "sometimes", "keypoint_pose='sometimes'"), ("size", 8, "size=8"), ("min_inliers", 3, "min_inliers=3"),
     ("ratio", 1.5, "ratio=1.5"), ("reproj_threshold", 0.0, "reproj_threshold=0.0"), ("method", "lmeds", "method"),
-    ("switch_margin", -1, "switch_margin=-1")])
+    ("switch_margin", -1, "switch_margin=-1"), ("precompute", -1, "precompute=-1"),
+    ("precompute", True, "precompute=True")])
 def test_bad_settings_are_one_line_errors(key: str, value: object, named: str) -> None:
     with pytest.raises(MatlError, match=named):
         KeypointPose(**{key: value})
