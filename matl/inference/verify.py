@@ -581,35 +581,36 @@ class CandidateMemo:
 
 def _posed_pairs(memo: CandidateMemo | None, keys: list[int] | None, anchors: torch.Tensor, start: torch.Tensor,
                  pose: Callable[[list[int]], tuple[torch.Tensor, torch.Tensor]],
-                 compare: Callable[[list[int], torch.Tensor], torch.Tensor]
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 compare: Callable[[list[int], torch.Tensor], torch.Tensor] | None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """The poses and distances of ``P`` (query, candidate) pairs, the query of pair ``p`` keyed ``keys[p]`` in
     ``memo`` (None: no memo) and its candidate ``anchors[p]``: ``pose(pairs)`` poses the pairs listed (``(verified
-    (n, 3, 3), answer's (n, 3, 3))``), ``compare(pairs, verified)`` compares them (``(n,)``); with a memo only the
-    pairs it lacks, and they are added to it.
+    (n, 3, 3), answer's (n, 3, 3))``), ``compare(pairs, verified)`` compares them (``(n,)``; None: no distances);
+    with a memo only the pairs it lacks, and what is posed or compared here is added to it.
     ``start`` ``(P, 3, 3)`` gives the dtype and device of the poses. Returns ``(verified (P, 3, 3), answer's
-    (P, 3, 3), distance (P,) float64)``."""
+    (P, 3, 3), distance (P,) float64 or None)``."""
     every = list(range(len(anchors)))
     if memo is None or keys is None:
         verified, answer = pose(every)
-        return verified, answer, compare(every, verified).double().cpu()
+        return verified, answer, None if compare is None else compare(every, verified).double().cpu()
     found = [memo.get(k, int(a)) for k, a in zip(keys, anchors.tolist(), strict=True)]
     missing = [p for p, f in enumerate(found) if f is None]
     verified, answer = start.clone(), start.clone()
-    distance = torch.zeros(len(keys), dtype=torch.float64)
     if missing:
         new_verified, new_answer = pose(missing)
         verified[missing], answer[missing] = new_verified.to(start), new_answer.to(start)
     for p, f in enumerate(found):
         if f is not None:
             verified[p], answer[p] = f[0].to(start), f[1].to(start)
-            if f[2] is not None:
-                distance[p] = f[2]
-    unknown = [p for p in every if found[p] is None or found[p][2] is None]
-    if unknown:
-        distance[unknown] = compare(unknown, verified[unknown]).double().cpu()
-    for p in every:
-        memo.put(keys[p], int(anchors[p]), verified[p], answer[p], float(distance[p]))
+    distance = None
+    unknown = missing
+    if compare is not None:
+        distance = torch.tensor([0.0 if f is None or f[2] is None else f[2] for f in found], dtype=torch.float64)
+        unknown = [p for p in every if found[p] is None or found[p][2] is None]
+        if unknown:
+            distance[unknown] = compare(unknown, verified[unknown]).double().cpu()
+    for p in unknown:  # what was posed or compared here
+        memo.put(keys[p], int(anchors[p]), verified[p], answer[p], None if distance is None else float(distance[p]))
     return verified, answer, distance
 
 
@@ -618,18 +619,16 @@ def memo_poses(memo: CandidateMemo, keys: list[int], anchors: torch.Tensor, star
     """The verified poses ``(P, 3, 3)`` (as ``start``'s dtype) of ``P`` (query, candidate) pairs, query ``keys[p]``
     and gallery anchor ``anchors[p]``: from ``memo`` where it has the pair, else by ``pose(pairs)`` (``(verified,
     answer's)`` of the pairs listed), which are added to it."""
-    found = [memo.get(k, int(a)) for k, a in zip(keys, anchors.tolist(), strict=True)]
-    missing = [p for p, f in enumerate(found) if f is None]
-    posed = start.clone()
-    if missing:
-        verified, answer = pose(missing)
-        for m, v, a in zip(missing, verified, answer, strict=True):
-            memo.put(keys[m], int(anchors[m]), v, a)
-            posed[m] = v.to(posed)
-    for p, f in enumerate(found):
-        if f is not None:
-            posed[p] = f[0].to(posed)
-    return posed
+    return _posed_pairs(memo, keys, anchors, start, pose, None)[0]
+
+
+def _without_objects(gallery: Any, d: torch.Tensor, exclude_object: torch.Tensor | None) -> torch.Tensor:
+    """Distances ``d`` ``(Q, G)`` to the gallery's anchors with those of each query's ``exclude_object`` ``(Q,)``
+    at infinity (None: as they are)."""
+    if exclude_object is None:
+        return d
+    own = gallery.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
+    return d.masked_fill(own, float("inf"))
 
 
 @torch.no_grad()
@@ -690,14 +689,8 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     n = len(queries)
     if memo is not None and (keys is None or len(keys) != n):
         raise ValueError(f"verify_candidates: a memo needs one key per query ({n}), got {keys}")
-    given = embedded
-    embedded = None
-    if first is None and given is not None:
-        _, stn_H, warped, d = None, *given
-        if exclude_object is not None:
-            own = g.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
-            d = d.masked_fill(own, float("inf"))
-        embedded = (None, stn_H, warped, d)
+    if embedded is not None:  # (features, STN poses, warps, distances) as candidate_distances gives them
+        embedded = (None, embedded[0], embedded[1], _without_objects(g, embedded[2], exclude_object))
     if first is None:  # the nearest (allowed) anchor, posed as the recognizer poses it
         if embedded is None:
             embedded = candidate_distances(recognizer, queries, exclude_object)
@@ -720,16 +713,11 @@ def verify_candidates(recognizer: Any, queries: torch.Tensor, top_k: int, verify
     x = queries[todo]
     seen = None if visibility is None else visibility[todo.to(visibility.device)]
     factor = None if upscale is None else torch.as_tensor(upscale)[todo]
-    if embedded is None and given is not None:
-        stn_H, warped, d = (t[todo.to(t.device)] for t in given)
-        if exclude_object is not None:
-            own = g.object_index.to(d.device)[None, :] == exclude_object[todo].to(d.device)[:, None]
-            d = d.masked_fill(own, float("inf"))
-    elif embedded is None:
+    if embedded is None:
         _, stn_H, warped, d = candidate_distances(recognizer, x, None if exclude_object is None else
                                                    exclude_object[todo])
     else:
-        stn_H, warped, d = stn_H[todo], warped[todo], d[todo]
+        stn_H, warped, d = (e[todo] for e in embedded[1:])
     again = candidate_pose is not None and not first_refined  # the nearest candidate, posed anew by the refinement
     if not again:
         d = d.scatter(1, index[todo, None].to(d.device), float("inf"))  # the nearest candidate, verified above
@@ -860,8 +848,5 @@ def candidate_distances(recognizer: Any, queries: torch.Tensor, exclude_object: 
     features, stn_H, _, warped = recognizer.embed_queries(queries)
     if stn_H is None:
         raise ValueError("verification needs a pose: the model has no STN")
-    d = recognizer.gallery_distances(features)
-    if exclude_object is not None:
-        own = recognizer.gallery.object_index.to(d.device)[None, :] == exclude_object.to(d.device)[:, None]
-        d = d.masked_fill(own, float("inf"))
-    return features, stn_H, warped, d
+    return features, stn_H, warped, _without_objects(recognizer.gallery, recognizer.gallery_distances(features),
+                                                     exclude_object)
